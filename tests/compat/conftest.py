@@ -1,0 +1,9 @@
+"""The compat tests need only mlagents-envs, protobuf, grpcio, numpy and Pillow.
+
+They also run under other interpreters (tests/compat/test_interpreters.py), so nothing
+here may import torch, ray or our heavier packages.
+"""
+
+from rollout import compat
+
+compat.install()

@@ -1,0 +1,70 @@
+"""Our packages import cleanly and never touch mlagents_envs.envs or its registry.
+
+``mlagents_envs.envs`` iterates ``default_registry``, which downloads a manifest and
+needs PettingZoo 1.15 (not installable on 3.11), so importing it would break us.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("rollout", "learners", "unitysim")
+
+SCRIPT = """
+import importlib, json, pkgutil, sys
+import rollout.compat, mlagents_envs.environment  # the README's check
+names = []
+for package in {packages!r}:
+    module = importlib.import_module(package)
+    names.append(package)
+    for info in pkgutil.walk_packages(module.__path__, package + "."):
+        if info.name.endswith("__main__"):
+            continue
+        importlib.import_module(info.name)
+        names.append(info.name)
+print(json.dumps({{"imported": names, "modules": sorted(sys.modules)}}))
+"""
+
+
+def test_no_module_imports_mlagents_envs_registry_or_envs():
+    result = subprocess.run(
+        [sys.executable, "-c", SCRIPT.format(packages=PACKAGES)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert "rollout.compat" in report["imported"]
+    assert "mlagents_envs.environment" in report["modules"]
+    forbidden = [
+        name
+        for name in report["modules"]
+        if name.startswith(("mlagents_envs.envs", "mlagents_envs.registry", "pettingzoo", "gym."))
+        or name == "gym"
+    ]
+    assert forbidden == []
+
+
+def test_unitysim_does_not_import_rollout_or_learners():
+    offenders = []
+    for path in (ROOT / "unitysim").rglob("*.py"):
+        for line in path.read_text().splitlines():
+            stripped = line.strip()
+            if stripped.startswith(("import ", "from ")) and (
+                " learners" in stripped
+                or (" rollout" in stripped and "rollout.compat" not in stripped)
+            ):
+                offenders.append(f"{path.relative_to(ROOT)}: {stripped}")
+    assert offenders == []
+
+
+def test_cli_help_lists_commands():
+    result = subprocess.run(
+        [sys.executable, "-m", "rollout.cli", "--help"], cwd=ROOT, capture_output=True, text=True
+    )
+    assert result.returncode == 0
+    assert "doctor" in result.stdout
