@@ -11,7 +11,7 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
-from unitysim.envs import NAMES, load
+from unitysim.envs import NAMES
 
 SUFFIX = ".x86_64"
 _PACKAGE_ROOT = Path(__file__).resolve().parent.parent
@@ -40,7 +40,10 @@ def build(
     directory.mkdir(parents=True, exist_ok=True)
     paths = []
     for name in names:
-        load(name)  # unknown names fail here, with the list of valid ones
+        if name not in NAMES:
+            raise ValueError(
+                f"unknown unitysim environment {name!r}; choose from {', '.join(NAMES)}"
+            )
         path = launcher_path(directory, name)
         text = _TEMPLATE.format(
             name=name,

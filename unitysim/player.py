@@ -107,11 +107,20 @@ class Player:
     def _play(self, exchange: Callable[..., messages.UnityMessageProto]) -> int:
         version = self.faults.communication_version or messages.COMMUNICATION_VERSION
         log.info("connecting to localhost:%d as %s", self.config.port, self.config.env_name)
-        reply = exchange(
-            messages.handshake_output(version),
-            wait_for_ready=True,
-            timeout=self.config.connect_timeout,
-        )
+        try:
+            reply = exchange(
+                messages.handshake_output(version),
+                wait_for_ready=True,
+                timeout=self.config.connect_timeout,
+            )
+        except grpc.RpcError as error:
+            log.error(
+                "no trainer answered on localhost:%d within %.0f s (%s)",
+                self.config.port,
+                self.config.connect_timeout,
+                error.code() if hasattr(error, "code") else error,
+            )
+            return 1
         if reply.header.status != 200:
             log.info("trainer refused the handshake (status %d)", reply.header.status)
             return 0

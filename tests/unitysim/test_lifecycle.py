@@ -1,0 +1,84 @@
+"""A unitysim player never outlives its trainer."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+from tests.unitysim.conftest import free_port
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).resolve().parents[2]
+
+TRAINER = """
+import sys, time
+import rollout.compat
+from mlagents_envs.environment import UnityEnvironment
+env = UnityEnvironment(file_name=sys.argv[1], base_port=int(sys.argv[2]), no_graphics=True)
+env.reset()
+print(env._process.pid, flush=True)
+time.sleep(120)
+"""
+
+
+def wait_gone(pid: int, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            if psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
+                return True
+        except psutil.NoSuchProcess:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_player_exits_when_its_trainer_is_killed(builds):
+    trainer = subprocess.Popen(
+        [sys.executable, "-c", TRAINER, str(builds / "3DBall"), str(free_port())],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        player_pid = int(trainer.stdout.readline())
+        assert psutil.pid_exists(player_pid)
+        os.kill(trainer.pid, signal.SIGKILL)
+        trainer.wait(10)
+        assert wait_gone(player_pid, 5.0), "player outlived its SIGKILLed trainer"
+    finally:
+        if trainer.poll() is None:
+            trainer.kill()
+            trainer.wait()
+
+
+def test_close_ends_the_player_promptly(open_env):
+    with open_env("3DBall") as env:
+        env.reset()
+        pid = env._process.pid
+        started = time.monotonic()
+        env.close()
+        assert time.monotonic() - started < 5
+        assert wait_gone(pid, 1.0)
+
+
+def test_launcher_execs_so_the_launched_pid_is_the_player(open_env):
+    with open_env("Basic") as env:
+        env.reset()
+        command = " ".join(psutil.Process(env._process.pid).cmdline())
+        assert "-m unitysim play --env Basic" in command
+
+
+def test_player_without_port_explains_itself(builds):
+    result = subprocess.run(
+        [str(builds / "3DBall.x86_64")], capture_output=True, text=True, timeout=30
+    )
+    assert result.returncode == 2
+    assert "--mlagents-port" in result.stderr
