@@ -53,7 +53,7 @@ def _cmd_play(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    return _play(args, args.port, watch_parent=True)
+    return _play(args, args.port, watch_parent=not args.no_parent_watch)
 
 
 def _cmd_editor(args: argparse.Namespace) -> int:
@@ -94,6 +94,11 @@ def build_parser() -> argparse.ArgumentParser:
     play.add_argument("--mlagents-port", dest="port", type=int, help="the trainer's port")
     play.add_argument("-nographics", action="store_true", help="ignored, as headless")
     play.add_argument("-batchmode", action="store_true", help="ignored, as headless")
+    play.add_argument(
+        "--no-parent-watch",
+        action="store_true",
+        help="do not exit when the launching process dies (to test launchers' own guards)",
+    )
     play.set_defaults(func=_cmd_play)
 
     editor = commands.add_parser("editor", help="connect like pressing Play in the editor")

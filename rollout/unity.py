@@ -1,0 +1,336 @@
+"""One Unity instance, as a rollout worker owns it: leased port, loopback-only server,
+player tied to its owner's life, side channels, and restarts after failures.
+
+``UnityEnvironment`` (mlagents-envs, unmodified) is subclassed in two places only:
+``_get_communicator`` returns a server bound to 127.0.0.1 with SO_REUSEPORT off on a port
+from :mod:`rollout.ports`, and ``_close`` also kills the player's process group. The
+player is launched through :mod:`rollout.launch_guard`, so it dies with its owner even
+after a SIGKILL. The same code drives real builds, unitysim builds
+(``unitysim:3DBall``) and the editor (``build=None``, port 5004).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import grpc
+from mlagents_envs import env_utils
+from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps, TerminalSteps
+from mlagents_envs.communicator_objects.unity_to_external_pb2_grpc import (
+    add_UnityToExternalProtoServicer_to_server,
+)
+from mlagents_envs.environment import UnityEnvironment
+from mlagents_envs.exception import (
+    UnityCommunicationException,
+    UnityEnvironmentException,
+    UnityTimeOutException,
+    UnityWorkerInUseException,
+)
+from mlagents_envs.rpc_communicator import (
+    RpcCommunicator,
+    UnityToExternalServicerImplementation,
+)
+from mlagents_envs.side_channel.engine_configuration_channel import (
+    EngineConfigurationChannel,
+)
+from mlagents_envs.side_channel.environment_parameters_channel import (
+    EnvironmentParametersChannel,
+)
+from mlagents_envs.side_channel.stats_side_channel import StatsSideChannel
+
+from rollout.ports import PortAllocator
+
+log = logging.getLogger(__name__)
+
+UNITYSIM_PREFIX = "unitysim:"
+EDITOR_PORT = UnityEnvironment.DEFAULT_EDITOR_PORT
+_PROJECT_ROOT = Path(__file__).resolve().parent.parent
+
+#: Failures a restart can cure: the player died, hung, sent status != 200 or NaNs.
+RECOVERABLE = (
+    UnityEnvironmentException,
+    UnityTimeOutException,
+    UnityCommunicationException,
+    UnityWorkerInUseException,
+    RuntimeError,
+)
+
+
+class UnityError(RuntimeError):
+    """A problem no restart can fix (bad build path, incompatible version, budget spent)."""
+
+
+@dataclass(frozen=True)
+class EngineSettings:
+    """Engine configuration sent at start; mlagents-learn's defaults for training."""
+
+    width: int = 84
+    height: int = 84
+    quality_level: int = 5
+    time_scale: float = 20.0
+    target_frame_rate: int = -1
+    capture_frame_rate: int = 60
+
+
+@dataclass(frozen=True)
+class UnityConfig:
+    build: str | None  # path to a build, "unitysim:<Env>", or None for the editor
+    seed: int = 0
+    num_areas: int = 1
+    timeout_wait: int = 60
+    no_graphics: bool = True
+    engine: EngineSettings = field(default_factory=EngineSettings)
+    env_params: Mapping[str, float] = field(default_factory=dict)
+    additional_args: tuple[str, ...] = ()
+    log_folder: str | None = None
+    max_restarts: int = 5
+    backoff_s: float = 0.5  # doubled after each consecutive restart, capped at 30 s
+
+
+# --- builds ---------------------------------------------------------------------------
+
+
+def unitysim_builds_dir() -> Path:
+    return Path(tempfile.gettempdir()) / f"unity-rollout-{os.getuid()}" / "unitysim-builds"
+
+
+def resolve_build(build: str | None) -> str | None:
+    """The executable to launch for ``build`` (None: editor mode), or a one-line error."""
+    if build is None:
+        return None
+    if build.startswith(UNITYSIM_PREFIX):
+        from unitysim.launcher import build as build_launchers
+
+        name = build[len(UNITYSIM_PREFIX) :]
+        try:
+            (launcher,) = build_launchers(unitysim_builds_dir(), [name])
+        except ValueError as error:
+            raise UnityError(str(error)) from None
+        return str(launcher)
+    executable = env_utils.validate_environment_path(build)
+    if executable is None:
+        raise UnityError(
+            f"no Unity build at {build!r}: expected an executable {build}.x86_64 (or the path "
+            f"of one), or use unitysim:<Env> for the headless stand-in"
+        )
+    if not os.access(executable, os.X_OK):
+        raise UnityError(f"Unity build {executable!r} is not executable: run chmod +x on it")
+    return executable
+
+
+def _guard_launcher(executable: str) -> str:
+    """A launcher that execs ``executable`` through rollout.launch_guard; returns the
+    ``file_name`` to give UnityEnvironment."""
+    directory = Path(tempfile.gettempdir()) / f"unity-rollout-{os.getuid()}" / "guarded"
+    directory.mkdir(parents=True, exist_ok=True)
+    name = Path(executable).name.replace(".x86_64", "").replace(".x86", "")
+    path = directory / f"{name}-{abs(hash(executable)):x}.x86_64"
+    text = (
+        "#!/bin/sh\n"
+        "# Ties the Unity player to its owner's life (see rollout/launch_guard.py).\n"
+        f'export PYTHONPATH={shlex.quote(str(_PROJECT_ROOT))}"${{PYTHONPATH:+:$PYTHONPATH}}"\n'
+        f"exec {shlex.quote(sys.executable)} -m rollout.launch_guard "
+        f'{shlex.quote(executable)} "$@"\n'
+    )
+    if not path.exists() or path.read_text() != text:
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(text)
+        tmp.chmod(0o755)
+        tmp.replace(path)
+    return str(path.with_suffix(""))
+
+
+# --- the mlagents subclasses ------------------------------------------------------------
+
+
+class LoopbackCommunicator(RpcCommunicator):
+    """mlagents' server, but on 127.0.0.1 only and without SO_REUSEPORT, so a second
+    server on the same port fails loudly instead of splitting the traffic."""
+
+    def __init__(self, port: int, timeout_wait: int, on_bound: Callable[[int], None]) -> None:
+        self._on_bound = on_bound
+        super().__init__(worker_id=0, base_port=port, timeout_wait=timeout_wait)
+
+    def create_server(self) -> None:
+        server = grpc.server(
+            thread_pool=ThreadPoolExecutor(max_workers=10),
+            options=(("grpc.so_reuseport", 0),),
+        )
+        self.unity_to_external = UnityToExternalServicerImplementation()
+        add_UnityToExternalProtoServicer_to_server(self.unity_to_external, server)
+        try:
+            bound = server.add_insecure_port(f"127.0.0.1:{self.port}")
+        except RuntimeError:
+            bound = 0
+        if bound != self.port:
+            server.stop(None)
+            raise UnityWorkerInUseException(self.worker_id)
+        server.start()
+        self.server = server
+        self.is_open = True
+        self._on_bound(self.port)
+
+
+class GuardedUnityEnvironment(UnityEnvironment):
+    def __init__(
+        self,
+        executable: str | None,
+        port: int,
+        on_bound: Callable[[int], None],
+        **kwargs: object,
+    ) -> None:
+        self._on_bound = on_bound
+        file_name = _guard_launcher(executable) if executable else None
+        super().__init__(file_name=file_name, base_port=port, worker_id=0, **kwargs)
+
+    def _get_communicator(  # type: ignore[override]
+        self, worker_id: int, base_port: int, timeout_wait: int
+    ) -> RpcCommunicator:
+        return LoopbackCommunicator(base_port + worker_id, timeout_wait, self._on_bound)
+
+    def _close(self, timeout: int | None = None) -> None:
+        process = self._process
+        super()._close(timeout)
+        if process is not None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(process.pid, signal.SIGKILL)  # the player's whole session
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                process.wait(5)
+
+    @property
+    def player_pid(self) -> int | None:
+        return self._process.pid if self._process is not None else None
+
+
+# --- the restartable instance ------------------------------------------------------------
+
+
+class UnityInstance:
+    """A Unity instance that restarts itself on a fresh port after a recoverable failure."""
+
+    def __init__(self, config: UnityConfig, allocator: PortAllocator | None = None) -> None:
+        self.config = config
+        self.allocator = allocator or PortAllocator()
+        self.executable = resolve_build(config.build)  # bad paths fail here, at once
+        self.restarts = 0
+        self.port: int | None = None
+        self.env: GuardedUnityEnvironment | None = None
+        self._stats = StatsSideChannel()
+        self._consecutive_failures = 0
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    def start(self) -> None:
+        config = self.config
+        port = self.allocator.lease() if self.executable else self.allocator.lease_port(EDITOR_PORT)
+        engine = EngineConfigurationChannel()
+        engine.set_configuration_parameters(**vars(config.engine))
+        params = EnvironmentParametersChannel()
+        for key, value in config.env_params.items():
+            params.set_float_parameter(key, float(value))
+        try:
+            self.env = GuardedUnityEnvironment(
+                self.executable,
+                port,
+                self.allocator.confirm,
+                seed=config.seed + self.restarts,
+                no_graphics=config.no_graphics,
+                timeout_wait=config.timeout_wait,
+                additional_args=list(config.additional_args),
+                side_channels=[engine, params, self._stats],
+                log_folder=config.log_folder,
+                num_areas=config.num_areas,
+            )
+        except UnityEnvironmentException as error:
+            self.allocator.release(port)
+            if "not compatible" in str(error):
+                raise UnityError(f"{config.build}: {str(error).splitlines()[0]}") from None
+            raise
+        except BaseException:
+            self.allocator.release(port)
+            raise
+        self.port = port
+        log.info("Unity %s on port %d (pid %s)", config.build, port, self.env.player_pid)
+
+    def close(self) -> None:
+        env, port = self.env, self.port
+        self.env, self.port = None, None
+        try:
+            if env is not None:
+                with contextlib.suppress(Exception):
+                    env.close()
+        finally:
+            if port is not None:
+                self.allocator.release(port)
+
+    def restart(self, reason: str) -> None:
+        """Close, back off, and start again on a fresh port (budget permitting)."""
+        self.close()
+        if self.restarts >= self.config.max_restarts:
+            raise UnityError(
+                f"{self.config.build}: restart budget of {self.config.max_restarts} spent "
+                f"(last failure: {reason})"
+            )
+        self.restarts += 1
+        delay = min(self.config.backoff_s * 2**self._consecutive_failures, 30.0)
+        self._consecutive_failures += 1
+        log.warning("restarting Unity (%s) in %.1f s: %s", self.config.build, delay, reason)
+        time.sleep(delay)
+        self.start()
+
+    def healthy_step(self) -> None:
+        """Call after a successful exchange: the backoff starts over."""
+        self._consecutive_failures = 0
+
+    def __enter__(self) -> UnityInstance:
+        self.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    # --- the environment ------------------------------------------------------------------
+
+    def _require(self) -> GuardedUnityEnvironment:
+        if self.env is None:
+            raise UnityError("the Unity instance is not running: call start() first")
+        return self.env
+
+    @property
+    def behavior_specs(self) -> Mapping[str, BehaviorSpec]:
+        return self._require().behavior_specs
+
+    @property
+    def player_pid(self) -> int | None:
+        return self._require().player_pid
+
+    def reset(self) -> None:
+        self._require().reset()
+
+    def step(self) -> None:
+        self._require().step()
+
+    def get_steps(self, behavior: str) -> tuple[DecisionSteps, TerminalSteps]:
+        return self._require().get_steps(behavior)
+
+    def set_actions(self, behavior: str, actions: ActionTuple) -> None:
+        self._require().set_actions(behavior, actions)
+
+    def drain_stats(self) -> dict[str, list[tuple[float, int]]]:
+        """Stats Unity sent since the last call (``StatsRecorder``), for the metrics."""
+        return {
+            key: [(value, int(method.value)) for value, method in entries]
+            for key, entries in self._stats.get_and_reset_stats().items()
+        }

@@ -1,0 +1,165 @@
+"""rollout.unity: a leased loopback-only port, a player tied to its owner, clear errors for
+bad builds, restarts on a fresh port after a crash."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import grpc
+import numpy as np
+import psutil
+import pytest
+
+from rollout.ports import PortAllocator, PortRange
+from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance, resolve_build
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).resolve().parents[2]
+BALL = "3DBall?team=0"
+
+
+@pytest.fixture
+def allocator(tmp_path):
+    allocator = PortAllocator(PortRange(24000, 24099), tmp_path / "ports", quarantine_s=60)
+    yield allocator
+    assert allocator.leases() == {}, "a test left a port leased"
+
+
+def wait_gone(pid: int, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            if psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
+                return True
+        except psutil.NoSuchProcess:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_instance_runs_on_a_confirmed_loopback_port(allocator):
+    with UnityInstance(UnityConfig("unitysim:3DBall", seed=1), allocator) as unity:
+        port = unity.port
+        assert allocator.leases()[port]["bound"] is True
+        listening = [
+            c.laddr
+            for c in psutil.Process().net_connections("tcp")
+            if c.status == psutil.CONN_LISTEN and c.laddr.port == port
+        ]
+        loopback = {"127.0.0.1", "::ffff:127.0.0.1"}  # gRPC may use a v4-mapped v6 socket
+        assert listening and all(address.ip in loopback for address in listening)
+        # gRPC's default SO_REUSEPORT cannot silently share our port.
+        intruder = grpc.server(None, options=(("grpc.so_reuseport", 1),))
+        try:
+            with pytest.raises(RuntimeError):
+                if intruder.add_insecure_port(f"[::]:{port}") == 0:
+                    raise RuntimeError("bind failed")
+        finally:
+            intruder.stop(None)
+        unity.reset()
+        unity.step()
+        decisions, _ = unity.get_steps(BALL)
+        assert len(decisions) == 12
+        pid = unity.player_pid
+    assert wait_gone(pid, 5)
+    assert port in allocator.quarantined()
+
+
+def test_missing_and_unexecutable_builds_fail_at_once(tmp_path):
+    with pytest.raises(UnityError, match="no Unity build at"):
+        resolve_build(str(tmp_path / "Nothing"))
+    build = tmp_path / "Game.x86_64"
+    build.write_text("#!/bin/sh\n")
+    build.chmod(0o644)
+    with pytest.raises(UnityError, match="is not executable: run chmod"):
+        resolve_build(str(tmp_path / "Game"))
+    with pytest.raises(UnityError, match="unknown unitysim environment 'Nope'"):
+        resolve_build("unitysim:Nope")
+
+
+def test_incompatible_version_is_a_clear_error(allocator):
+    config = UnityConfig(
+        "unitysim:3DBall", additional_args=("--sim-communication-version", "2.0.0")
+    )
+    with pytest.raises(UnityError, match="communication API version is not compatible"):
+        UnityInstance(config, allocator).start()
+
+
+def test_killed_player_is_restarted_on_a_fresh_port(allocator):
+    with UnityInstance(UnityConfig("unitysim:3DBall", backoff_s=0.0), allocator) as unity:
+        unity.reset()
+        first_port, first_pid = unity.port, unity.player_pid
+        os.kill(first_pid, signal.SIGKILL)
+        with pytest.raises(Exception) as failure:
+            for _ in range(50):
+                unity.step()
+        assert isinstance(failure.value, RECOVERABLE)
+        unity.restart(str(failure.value))
+        unity.reset()
+        unity.step()
+        assert unity.restarts == 1
+        assert unity.port != first_port
+        assert first_port in allocator.quarantined()
+        assert len(unity.get_steps(BALL)[0]) == 12
+
+
+def test_restart_budget_is_enforced(allocator):
+    unity = UnityInstance(UnityConfig("unitysim:Basic", max_restarts=1, backoff_s=0.0), allocator)
+    unity.start()
+    try:
+        unity.restart("first")
+        with pytest.raises(UnityError, match="restart budget of 1 spent"):
+            unity.restart("second")
+    finally:
+        unity.close()
+
+
+OWNER = """
+import sys, time
+from rollout.ports import PortAllocator, PortRange
+from rollout.unity import UnityConfig, UnityInstance
+allocator = PortAllocator(PortRange(24100, 24199), sys.argv[1])
+config = UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",))
+unity = UnityInstance(config, allocator)
+unity.start()
+print(unity.player_pid, flush=True)
+time.sleep(120)
+"""
+
+
+def test_player_dies_with_its_sigkilled_owner(tmp_path):
+    """The player ignores its own parent watch here: only the launch guard can end it."""
+    owner = subprocess.Popen(
+        [sys.executable, "-c", OWNER, str(tmp_path)], cwd=ROOT, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        player = int(owner.stdout.readline())
+        assert "--no-parent-watch" in psutil.Process(player).cmdline()
+        owner.send_signal(signal.SIGKILL)
+        owner.wait(10)
+        assert wait_gone(player, 3.0), "the player outlived its SIGKILLed owner"
+    finally:
+        if owner.poll() is None:
+            owner.kill()
+            owner.wait()
+    # The dead owner's lease is reclaimed by the next registry access.
+    assert PortAllocator(PortRange(24100, 24199), tmp_path).leases() == {}
+
+
+def test_stats_are_forwarded(allocator):
+    with UnityInstance(UnityConfig("unitysim:Echo", seed=2), allocator) as unity:
+        unity.reset()
+        for _ in range(60):
+            for behavior in unity.behavior_specs:
+                decisions, _ = unity.get_steps(behavior)
+                spec = unity.behavior_specs[behavior]
+                unity.set_actions(behavior, spec.action_spec.empty_action(len(decisions)))
+            unity.step()
+        stats = unity.drain_stats()
+    assert stats["Echo/Episodes Ended"] and all(m == 2 for _, m in stats["Echo/Episodes Ended"])
+    assert np.sum([v for v, _ in stats["Echo/Episodes Ended"]]) > 0
