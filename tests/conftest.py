@@ -17,7 +17,19 @@ SESSION_TAG = "UNITY_ROLLOUT_TEST_SESSION"
 os.environ.setdefault(SESSION_TAG, uuid.uuid4().hex)
 
 
-def tagged_processes() -> list:
+RAY_MARKERS = ("raylet", "gcs_server", "ray/", "ray::", "default_worker", "dashboard")
+
+
+def is_ray_process(process) -> bool:
+    """Ray's own processes live for the whole session (one shared ``ray.init``)."""
+    try:
+        command = " ".join(process.cmdline())
+    except Exception:
+        return False
+    return any(marker in command for marker in RAY_MARKERS)
+
+
+def tagged_processes(include_ray: bool = False) -> list:
     """Live processes (not us) that inherited this test session's tag."""
     import psutil
 
@@ -26,11 +38,30 @@ def tagged_processes() -> list:
         if process.pid == me or process.info["status"] == psutil.STATUS_ZOMBIE:
             continue
         try:
-            if process.environ().get(SESSION_TAG) == tag:
+            if process.environ().get(SESSION_TAG) == tag and (
+                include_ray or not is_ray_process(process)
+            ):
                 found.append(process)
         except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
             continue
     return found
+
+
+def wait_for_no_processes(include_ray: bool, seconds: float = 10.0) -> list[str]:
+    """Wait for tagged processes to end; kill and describe those that do not."""
+    deadline = time.monotonic() + seconds
+    left = tagged_processes(include_ray)
+    while left and time.monotonic() < deadline:
+        time.sleep(0.2)
+        left = tagged_processes(include_ray)
+    details = []
+    for process in left:
+        try:
+            details.append(f"{process.pid}: {' '.join(process.cmdline())[:200]}")
+            process.kill()
+        except Exception:
+            continue
+    return details
 
 
 @pytest.fixture(autouse=True)
@@ -40,13 +71,17 @@ def no_leftover_processes(request):
         import psutil  # noqa: F401
     except ImportError:  # the compat suite under other interpreters starts no processes
         return
-    deadline = time.monotonic() + 10.0
-    left = tagged_processes()
-    while left and time.monotonic() < deadline:
-        time.sleep(0.2)
-        left = tagged_processes()
-    if left:
-        details = [f"{p.pid}: {' '.join(p.cmdline())[:200]}" for p in left]
-        for process in left:
-            process.kill()
-        pytest.fail(f"test left processes behind: {details}")
+    if left := wait_for_no_processes(include_ray=False):
+        pytest.fail(f"test left processes behind: {left}")
+
+
+@pytest.fixture(scope="session")
+def ray_session():
+    """One local Ray for the whole session (it takes ~6 s to start), 2 CPUs as in CI."""
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+    if left := wait_for_no_processes(include_ray=True, seconds=20.0):
+        pytest.fail(f"Ray left processes behind after shutdown: {left}")

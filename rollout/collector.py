@@ -1,0 +1,204 @@
+"""The core of a rollout worker: one Unity instance, a CPU copy of each behavior's policy,
+and a segment builder per behavior. Plain Python (no Ray), so it runs in-process in tests;
+``rollout.worker`` is the thin Ray shell around it.
+
+Loop of one exchange: for every behavior, read the decision and terminal steps, complete
+transitions, gather finished rows, ask the policy for actions (one batched call per
+behavior), then step Unity. Weights are loaded only between ``collect`` calls. When the
+player fails, partial rows are dropped (and counted), never sent, and the instance
+restarts on a fresh port.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from mlagents_envs.base_env import ActionTuple, BehaviorSpec
+from tensordict import TensorDict
+
+from rollout.ports import PortAllocator
+from rollout.segments import Decisions, SegmentBuilder, allowed_mask
+from rollout.unity import RECOVERABLE, UnityConfig, UnityInstance
+
+log = logging.getLogger(__name__)
+
+
+class Actor(Protocol):
+    """What a worker needs of a policy (``learners.policies.ActorCritic`` is one)."""
+
+    def act(
+        self, obs: dict[str, torch.Tensor], mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> Any: ...
+
+
+ActorFactory = Callable[[BehaviorSpec], Actor]
+Weights = dict[str, dict[str, torch.Tensor]]  # behavior -> state_dict
+
+
+@dataclass
+class BehaviorStats:
+    agent_steps: int = 0
+    episodes: int = 0
+    return_sum: float = 0.0
+    length_sum: int = 0
+    rows: int = 0
+    dropped_steps: int = 0
+
+
+@dataclass
+class CollectorMetrics:
+    env_steps: int = 0  # exchanges with Unity
+    agent_steps: int = 0  # transitions recorded, all behaviors
+    restarts: int = 0
+    dropped_steps: int = 0
+    policy_version: int = 0
+    behaviors: dict[str, BehaviorStats] = field(default_factory=dict)
+    unity_stats: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+class Collector:
+    def __init__(
+        self,
+        unity: UnityConfig,
+        actor_factory: ActorFactory,
+        horizon: int = 64,
+        worker: int = 0,
+        allocator: PortAllocator | None = None,
+    ) -> None:
+        self.unity = UnityInstance(unity, allocator)
+        self.actor_factory = actor_factory
+        self.horizon = horizon
+        self.worker = worker
+        self.builders: dict[str, SegmentBuilder] = {}
+        self.actors: dict[str, Actor] = {}
+        self.weights: Weights = {}
+        self.version = 0
+        self.metrics = CollectorMetrics()
+        self._started = False
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    def start(self) -> None:
+        self.unity.start()
+        self.unity.reset()
+        self._started = True
+
+    def close(self) -> None:
+        self.unity.close()
+        self._started = False
+
+    def load_weights(self, version: int, weights: Weights) -> None:
+        """Newest published weights (between segments only); older versions are ignored."""
+        if version <= self.version:
+            return
+        self.version, self.weights = version, weights
+        for behavior, actor in self.actors.items():
+            if behavior in weights:
+                actor.load_state_dict(weights[behavior])
+        self.metrics.policy_version = version
+
+    # --- collection ---------------------------------------------------------------------
+
+    def collect(self, min_rows: int = 1, max_exchanges: int = 100_000) -> list[TensorDict]:
+        """Step Unity until at least ``min_rows`` rows are finished; returns the segments
+        (one ``[B, T]`` TensorDict per behavior that finished rows)."""
+        if not self._started:
+            self.start()
+        started = time.perf_counter()
+        segments: list[TensorDict] = []
+        rows = 0
+        for _ in range(max_exchanges):
+            try:
+                rows += self._exchange(segments)
+            except RECOVERABLE as error:
+                self._recover(error)
+                continue
+            if rows >= min_rows:
+                break
+        self.metrics.seconds += time.perf_counter() - started
+        return segments
+
+    def _exchange(self, segments: list[TensorDict]) -> int:
+        unity, rows = self.unity, 0
+        for behavior, spec in unity.behavior_specs.items():
+            builder = self.builders.get(behavior) or self._add_behavior(behavior, spec)
+            decisions, terminals = unity.get_steps(behavior)
+            builder.observe(decisions, terminals)
+            finished = builder.collect(self.metrics.env_steps)
+            if finished is not None:
+                segments.append(finished)
+                rows += finished.batch_size[0]
+            if len(decisions):
+                chosen = self._act(behavior, spec, decisions)
+                builder.act(decisions, chosen, self.version)
+        unity.step()
+        unity.healthy_step()
+        self.metrics.env_steps += 1
+        return rows
+
+    def _add_behavior(self, behavior: str, spec: BehaviorSpec) -> SegmentBuilder:
+        builder = SegmentBuilder(behavior, spec, self.horizon, worker=self.worker)
+        self.builders[behavior] = builder
+        actor = self.actor_factory(spec)
+        if behavior in self.weights:
+            actor.load_state_dict(self.weights[behavior])
+        self.actors[behavior] = actor
+        self.metrics.behaviors[behavior] = BehaviorStats()
+        return builder
+
+    def _act(self, behavior: str, spec: BehaviorSpec, decisions: Any) -> Decisions:
+        obs = {
+            o.name: torch.from_numpy(values)
+            for o, values in zip(spec.observation_specs, decisions.obs, strict=True)
+        }
+        branches = spec.action_spec.discrete_branches
+        mask = torch.from_numpy(allowed_mask(decisions, sum(branches))) if branches else None
+        continuous, discrete, log_prob = self.actors[behavior].act(obs, mask)
+        continuous_np = continuous.numpy().astype(np.float32, copy=False)
+        discrete_np = discrete.numpy()
+        self.unity.set_actions(
+            behavior,
+            ActionTuple(
+                continuous=np.clip(continuous_np, -1.0, 1.0),
+                discrete=discrete_np.astype(np.int32),
+            ),
+        )
+        return Decisions(continuous_np, discrete_np, log_prob.numpy().astype(np.float32))
+
+    def _recover(self, error: BaseException) -> None:
+        """The player failed: drop partial rows (never sent), restart on a fresh port."""
+        dropped = sum(builder.drop_partial() for builder in self.builders.values())
+        self.metrics.dropped_steps += dropped
+        log.warning("worker %d: Unity failed (%s); dropped %d steps", self.worker, error, dropped)
+        self.unity.restart(f"{type(error).__name__}: {error}")
+        self.metrics.restarts = self.unity.restarts
+        self.unity.reset()
+
+    # --- metrics ------------------------------------------------------------------------
+
+    def snapshot(self) -> CollectorMetrics:
+        """Metrics so far; episode results and Unity stats are drained into them."""
+        metrics = self.metrics
+        metrics.agent_steps = sum(b.counters.steps for b in self.builders.values())
+        for behavior, builder in self.builders.items():
+            stats = metrics.behaviors[behavior]
+            returns, lengths = builder.drain_episodes()
+            stats.episodes += len(returns)
+            stats.return_sum += float(returns.sum())
+            stats.length_sum += int(lengths.sum())
+            stats.agent_steps = builder.counters.steps
+            stats.rows = builder.counters.rows
+            stats.dropped_steps = builder.counters.dropped_steps
+        if self.unity.env is not None:
+            for key, values in self.unity.drain_stats().items():
+                metrics.unity_stats.setdefault(key, []).extend(values)
+        return metrics

@@ -1,0 +1,31 @@
+"""Every TensorDict key of a segment, in one place (see docs/batch-format.md).
+
+torchrl conventions: what follows an action (reward, done flags, next observation) lives
+under ``"next"`` with a trailing dimension of 1 for scalars. Action masks follow torchrl's
+``MaskedCategorical`` convention, True = allowed, the inverse of ML-Agents' wire flag.
+"""
+
+from __future__ import annotations
+
+OBS = "obs"  # ("obs", <sensor name>): float32 [*sensor shape], one entry per sensor
+ACTION = "action"  # ("action", CONTINUOUS) float32 [c]; ("action", DISCRETE) int64 [branches]
+CONTINUOUS = "continuous"
+DISCRETE = "discrete"
+ACTION_MASK = "action_mask"  # bool [sum(branches)], True = allowed; discrete behaviors only
+LOG_PROB = "sample_log_prob"  # float32: log-probability of the action under the acting policy
+POLICY_VERSION = "policy_version"  # int64: version of the weights that chose the action
+AGENT_ID = "agent_id"  # int64: Unity's agent id (unique within a behavior)
+GROUP_ID = "group_id"  # int64: multi-agent group, 0 = none
+VALID = "valid"  # bool: False on padding after the end of a short row
+
+NEXT = "next"
+REWARD = "reward"  # ("next", REWARD) float32 [1]: reward since the decision
+GROUP_REWARD = "group_reward"  # ("next", GROUP_REWARD) float32 [1]
+DONE = "done"  # ("next", DONE) bool [1]: the episode ended after this step
+TERMINATED = "terminated"  # ("next", TERMINATED): ended for real (bootstrap with 0)
+TRUNCATED = "truncated"  # ("next", TRUNCATED): interrupted (MaxStep) or cut: bootstrap
+
+# Segment metadata, one value per row (batch dimension only).
+WORKER = "worker"  # int64: index of the worker that collected the row
+ENV_STEPS = "env_steps"  # int64: the worker's environment exchanges when the row was emitted
+BEHAVIOR = "behavior"  # non-tensor str: the fully qualified behavior name

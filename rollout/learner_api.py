@@ -1,0 +1,27 @@
+"""The contract between rollout workers and a learner (``learners`` implements it).
+
+The service forwards each worker's segments (an ObjectRef to ``list[TensorDict]``, the
+format of docs/batch-format.md) with ``submit``; it keeps at most a few submissions in
+flight, so a slow learner slows collection instead of growing a queue. ``submit`` returns
+the learner's newest weights version; when it is newer than what workers have, the service
+fetches ``weights()`` once (one object per version) and passes it to every worker's next
+``collect``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from tensordict import TensorDict
+
+from rollout.collector import Weights
+
+
+class Learner(Protocol):
+    def submit(self, segments: list[TensorDict]) -> int:
+        """Consume segments; return the newest weights version."""
+        ...
+
+    def weights(self) -> tuple[int, Weights]:
+        """The newest version and its weights, behavior -> state_dict."""
+        ...

@@ -1,0 +1,332 @@
+"""Trajectory assembly for one behavior: per-agent transitions into ``[B, T]`` segments.
+
+Unity reports, per exchange, the agents that need a decision and those whose episode ended
+(the same agent may be in both; agents appear, disappear and move between behaviors). A
+transition is (observation, action) at a decision, completed by the agent's *next* info:
+a terminal one (``done``; ``terminated`` unless interrupted, else ``truncated``) or a
+decision one (not done). Each agent fills a row of ``T`` transitions, across episode
+boundaries; a full row is emitted and the agent starts a new one. An agent that ended and
+has not come back for ``gone_after`` exchanges (DungeonEscape's sacrificed agent, an agent
+that switched behavior) has its partial row emitted, padded, with ``valid`` False after
+its last step.
+
+Everything is vectorized over the agents of the exchange: numpy fancy indexing into
+per-slot buffers, never a Python loop over agents.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
+from tensordict import TensorDict
+
+from rollout import keys
+
+INITIAL_SLOTS = 16
+STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
+
+
+@dataclass(frozen=True)
+class Decisions:
+    """What the policy chose for the decision agents of one exchange, in their order."""
+
+    continuous: np.ndarray  # float32 (n, continuous size)
+    discrete: np.ndarray  # int64 (n, branches)
+    log_prob: np.ndarray  # float32 (n,)
+
+
+@dataclass
+class Counters:
+    steps: int = 0  # transitions recorded
+    rows: int = 0  # rows emitted
+    dropped_steps: int = 0  # transitions thrown away (e.g. the player crashed mid-row)
+    unmatched_terminals: int = 0  # terminal infos of agents that never acted
+
+
+class SegmentBuilder:
+    """Builds ``[B, T]`` TensorDict segments for one behavior.
+
+    Per exchange: ``observe(decisions, terminals)``, then ``collect()`` for finished rows,
+    then ``act(decisions, chosen, policy_version)`` with the policy's choices.
+    """
+
+    def __init__(
+        self,
+        behavior: str,
+        spec: BehaviorSpec,
+        horizon: int,
+        worker: int = 0,
+        gone_after: int | None = None,
+    ) -> None:
+        self.behavior = behavior
+        self.spec = spec
+        self.horizon = horizon
+        self.worker = worker
+        self.gone_after = gone_after or horizon
+        self.counters = Counters()
+        self.episodes: list[tuple[np.ndarray, np.ndarray]] = []  # (returns, lengths) batches
+        self._sensors = [(o.name, o.shape) for o in spec.observation_specs]
+        self._continuous = spec.action_spec.continuous_size
+        self._branches = len(spec.action_spec.discrete_branches)
+        self._mask_size = int(sum(spec.action_spec.discrete_branches))
+        self._allocate(INITIAL_SLOTS)
+
+    # --- storage ------------------------------------------------------------------------
+
+    def _fields(self, slots: int) -> dict[str, np.ndarray]:
+        """Per-slot storage: row buffers ``(S, T, ...)`` and pending decisions ``(S, ...)``."""
+        s, t = slots, self.horizon
+        fields = {
+            "cont": np.zeros((s, t, self._continuous), np.float32),
+            "disc": np.zeros((s, t, self._branches), np.int64),
+            "mask": np.ones((s, t, self._mask_size), np.bool_),
+            "logp": np.zeros((s, t), np.float32),
+            "version": np.zeros((s, t), np.int64),
+            "group": np.zeros((s, t), np.int64),
+            "reward": np.zeros((s, t), np.float32),
+            "group_reward": np.zeros((s, t), np.float32),
+            "done": np.zeros((s, t), np.bool_),
+            "terminated": np.zeros((s, t), np.bool_),
+            "truncated": np.zeros((s, t), np.bool_),
+            "p_cont": np.zeros((s, self._continuous), np.float32),
+            "p_disc": np.zeros((s, self._branches), np.int64),
+            "p_mask": np.ones((s, self._mask_size), np.bool_),
+            "p_logp": np.zeros(s, np.float32),
+            "p_version": np.zeros(s, np.int64),
+            "p_group": np.zeros(s, np.int64),
+            "length": np.zeros(s, np.int64),
+            "pending": np.zeros(s, np.bool_),
+            "ended": np.zeros(s, np.bool_),
+            "idle": np.zeros(s, np.int64),
+            "ep_return": np.zeros(s, np.float64),
+            "ep_length": np.zeros(s, np.int64),
+            "agent": np.full(s, -1, np.int64),  # agent id per slot, -1 = free
+        }
+        for name, shape in self._sensors:
+            fields[f"obs/{name}"] = np.zeros((s, t, *shape), np.float32)
+            fields[f"next/{name}"] = np.zeros((s, t, *shape), np.float32)
+            fields[f"p_obs/{name}"] = np.zeros((s, *shape), np.float32)
+        return fields
+
+    def _allocate(self, slots: int) -> None:
+        old = getattr(self, "_f", None)
+        self._f = self._fields(slots)
+        if old is not None:
+            for name, array in old.items():
+                self._f[name][: len(array)] = array
+
+    def _slots(self, ids: np.ndarray, create: bool) -> np.ndarray:
+        """Slot of each agent id (vectorized); -1 for unknown ids unless ``create``."""
+        agent = self._f["agent"]
+        active = np.flatnonzero(agent >= 0)
+        slots = np.full(len(ids), -1, np.int64)
+        if len(active):
+            order = np.argsort(agent[active])
+            sorted_ids = agent[active][order]
+            pos = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
+            found = sorted_ids[pos] == ids
+            slots[found] = active[order][pos[found]]
+        new = np.flatnonzero(slots < 0)
+        if create and len(new):
+            free = np.flatnonzero(agent < 0)
+            if len(free) < len(new):
+                self._allocate(max(2 * len(agent), len(agent) + len(new)))
+                free = np.flatnonzero(self._f["agent"] < 0)
+            chosen = free[: len(new)]
+            f = self._f
+            f["agent"][chosen] = ids[new]
+            for name in ("length", "idle", "ep_return", "ep_length"):
+                f[name][chosen] = 0
+            for name in ("pending", "ended"):
+                f[name][chosen] = False
+            slots[new] = chosen
+        return slots
+
+    # --- one exchange -------------------------------------------------------------------
+
+    def observe(self, decisions: DecisionSteps, terminals: TerminalSteps) -> None:
+        """Complete the pending transitions of agents that reported in this exchange."""
+        f = self._f
+        f["idle"][f["agent"] >= 0] += 1
+        if len(terminals):
+            slots = self._slots(terminals.agent_id.astype(np.int64), create=False)
+            known = slots >= 0
+            f["ended"][slots[known]] = True
+            f["idle"][slots[known]] = 0
+            rows = np.flatnonzero(known & f["pending"][np.maximum(slots, 0)])
+            self.counters.unmatched_terminals += len(terminals) - len(rows)
+            interrupted = terminals.interrupted[rows]
+            self._complete(
+                slots[rows],
+                [o[rows] for o in terminals.obs],
+                terminals.reward[rows],
+                terminals.group_reward[rows],
+                done=np.ones(len(rows), np.bool_),
+                truncated=interrupted,
+            )
+        if len(decisions):
+            slots = self._slots(decisions.agent_id.astype(np.int64), create=True)
+            f["ended"][slots] = False
+            f["idle"][slots] = 0
+            rows = np.flatnonzero(f["pending"][slots])
+            none = np.zeros(len(rows), np.bool_)
+            self._complete(
+                slots[rows],
+                [o[rows] for o in decisions.obs],
+                decisions.reward[rows],
+                decisions.group_reward[rows],
+                done=none,
+                truncated=none,
+            )
+
+    def _complete(
+        self,
+        slots: np.ndarray,
+        next_obs: list[np.ndarray],
+        reward: np.ndarray,
+        group_reward: np.ndarray,
+        done: np.ndarray,
+        truncated: np.ndarray,
+    ) -> None:
+        if not len(slots):
+            return
+        f = self._f
+        t = f["length"][slots]
+        for name, _ in self._sensors:
+            f[f"obs/{name}"][slots, t] = f[f"p_obs/{name}"][slots]
+        for (name, _), values in zip(self._sensors, next_obs, strict=True):
+            f[f"next/{name}"][slots, t] = values
+        for row, pending in (
+            ("cont", "p_cont"),
+            ("disc", "p_disc"),
+            ("mask", "p_mask"),
+            ("logp", "p_logp"),
+            ("version", "p_version"),
+            ("group", "p_group"),
+        ):
+            f[row][slots, t] = f[pending][slots]
+        f["reward"][slots, t] = reward
+        f["group_reward"][slots, t] = group_reward
+        f["done"][slots, t] = done
+        f["terminated"][slots, t] = done & ~truncated
+        f["truncated"][slots, t] = truncated
+        f["length"][slots] += 1
+        f["pending"][slots] = False
+        self.counters.steps += len(slots)
+        f["ep_return"][slots] += reward
+        f["ep_length"][slots] += 1
+        ended = slots[done]
+        if len(ended):
+            self.episodes.append((f["ep_return"][ended].copy(), f["ep_length"][ended].copy()))
+            f["ep_return"][ended] = 0.0
+            f["ep_length"][ended] = 0
+
+    def act(self, decisions: DecisionSteps, chosen: Decisions, policy_version: int) -> None:
+        """Remember what the decision agents were told to do, to complete next exchange."""
+        if not len(decisions):
+            return
+        f = self._f
+        slots = self._slots(decisions.agent_id.astype(np.int64), create=True)
+        for (name, _), values in zip(self._sensors, decisions.obs, strict=True):
+            f[f"p_obs/{name}"][slots] = values
+        f["p_cont"][slots] = chosen.continuous
+        f["p_disc"][slots] = chosen.discrete
+        f["p_logp"][slots] = chosen.log_prob
+        f["p_version"][slots] = policy_version
+        f["p_group"][slots] = decisions.group_id
+        if self._mask_size:
+            f["p_mask"][slots] = allowed_mask(decisions, self._mask_size)
+        f["pending"][slots] = True
+
+    def collect(self, env_steps: int = 0) -> TensorDict | None:
+        """Finished rows as one ``[B, T]`` TensorDict, or None when no row is finished."""
+        f = self._f
+        active = f["agent"] >= 0
+        is_full = active & (f["length"] == self.horizon)
+        full = np.flatnonzero(is_full)
+        # A full row is emitted as such; its agent may leave at the next collect.
+        gone = np.flatnonzero(active & ~is_full & f["ended"] & (f["idle"] > self.gone_after))
+        silent = f["idle"] > STALE_FACTOR * self.gone_after
+        stale = np.flatnonzero(active & ~is_full & ~f["ended"] & silent)
+        if len(stale):  # vanished without a terminal info: cut the row there
+            with_steps = stale[f["length"][stale] > 0]
+            last = f["length"][with_steps] - 1
+            f["done"][with_steps, last] = True
+            f["truncated"][with_steps, last] = True
+            self.counters.dropped_steps += int(f["pending"][stale].sum())
+        leaving = np.concatenate([gone, stale])
+        rows = np.concatenate([full, leaving[f["length"][leaving] > 0]])
+        batch = self._rows(rows, env_steps) if len(rows) else None
+        f["length"][full] = 0
+        f["agent"][leaving] = -1
+        return batch
+
+    def _rows(self, slots: np.ndarray, env_steps: int) -> TensorDict:
+        f, n, t = self._f, len(slots), self.horizon
+        valid = np.arange(t)[None, :] < f["length"][slots][:, None]
+
+        def take(name: str, scalar: bool = False) -> torch.Tensor:
+            values = np.where(
+                valid.reshape(valid.shape + (1,) * (f[name].ndim - 2)), f[name][slots], 0
+            )
+            tensor = torch.from_numpy(values.astype(f[name].dtype, copy=False))
+            return tensor.unsqueeze(-1) if scalar else tensor
+
+        action = {}
+        if self._continuous:
+            action[keys.CONTINUOUS] = take("cont")
+        if self._branches:
+            action[keys.DISCRETE] = take("disc")
+        data = {
+            keys.OBS: {name: take(f"obs/{name}") for name, _ in self._sensors},
+            keys.ACTION: action,
+            keys.LOG_PROB: take("logp"),
+            keys.POLICY_VERSION: take("version"),
+            keys.GROUP_ID: take("group"),
+            keys.AGENT_ID: torch.from_numpy(f["agent"][slots]).unsqueeze(1).expand(n, t),
+            keys.VALID: torch.from_numpy(valid),
+            keys.WORKER: torch.full((n, t), self.worker, dtype=torch.int64),
+            keys.ENV_STEPS: torch.full((n, t), env_steps, dtype=torch.int64),
+            keys.NEXT: {
+                keys.OBS: {name: take(f"next/{name}") for name, _ in self._sensors},
+                keys.REWARD: take("reward", scalar=True),
+                keys.GROUP_REWARD: take("group_reward", scalar=True),
+                keys.DONE: take("done", scalar=True),
+                keys.TERMINATED: take("terminated", scalar=True),
+                keys.TRUNCATED: take("truncated", scalar=True),
+            },
+        }
+        if self._mask_size:
+            data[keys.ACTION_MASK] = torch.from_numpy(f["mask"][slots].copy())
+        batch = TensorDict(data, batch_size=[n, t])
+        batch.set_non_tensor(keys.BEHAVIOR, self.behavior)
+        self.counters.rows += n
+        return batch
+
+    def drain_episodes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Returns and lengths (in decisions) of the episodes finished since the last call."""
+        episodes, self.episodes = self.episodes, []
+        if not episodes:
+            return np.zeros(0), np.zeros(0, np.int64)
+        return np.concatenate([r for r, _ in episodes]), np.concatenate([n for _, n in episodes])
+
+    def drop_partial(self) -> int:
+        """Forget every unfinished row (the player died): returns the steps dropped."""
+        f = self._f
+        active = f["agent"] >= 0
+        dropped = int(f["length"][active].sum() + f["pending"][active].sum())
+        f["agent"][:] = -1
+        f["length"][:] = 0
+        f["pending"][:] = False
+        self.counters.dropped_steps += dropped
+        return dropped
+
+
+def allowed_mask(decisions: DecisionSteps, size: int) -> np.ndarray:
+    """ML-Agents' per-branch masks (True = forbidden) as one flat allowed-mask."""
+    if decisions.action_mask is None:
+        return np.ones((len(decisions), size), np.bool_)
+    return ~np.concatenate(decisions.action_mask, axis=1)

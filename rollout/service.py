@@ -1,0 +1,223 @@
+"""The rollout service: starts N workers, routes their segments to the learner, brings
+newer weights back, supervises, aggregates metrics, and stops everything cleanly.
+
+Data flow (all ObjectRefs; the driver never touches segment data)::
+
+    worker.collect(version, weights)  ->  segments ref  ->  learner.submit(segments)
+          ^                                                         |
+          +------ weights ref (one ray.put per version) <-----------+
+
+Back-pressure: each worker has at most ``collects_per_worker`` collect calls in flight,
+and at most ``learner_in_flight`` submissions wait at the learner; while the learner is
+behind, no new collect is issued. Nothing queues without bound.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import ray
+from ray.exceptions import RayActorError
+
+from rollout.collector import ActorFactory, CollectorMetrics
+from rollout.ports import PortRange
+from rollout.unity import UnityConfig
+from rollout.worker import RolloutWorker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    unity: UnityConfig
+    num_workers: int = 2
+    horizon: int = 64  # T: steps per segment row (ML-Agents' time_horizon)
+    min_rows: int = 1  # rows a collect call waits for before returning
+    collects_per_worker: int = 1
+    learner_in_flight: int = 2
+    worker_cpus: float = 1.0
+    max_worker_restarts: int = 3
+    port_range: PortRange | None = None
+    registry_dir: str | None = None
+
+
+@dataclass
+class ServiceMetrics:
+    env_steps: int = 0
+    agent_steps: int = 0
+    segments: int = 0
+    worker_restarts: int = 0
+    unity_restarts: int = 0
+    dropped_steps: int = 0
+    policy_lag_max: int = 0
+    policy_lag_sum: int = 0
+    policy_lag_count: int = 0
+    seconds: float = 0.0
+    workers: list[CollectorMetrics] = field(default_factory=list)
+
+    @property
+    def policy_lag_mean(self) -> float:
+        return self.policy_lag_sum / max(self.policy_lag_count, 1)
+
+
+class RolloutService:
+    def __init__(
+        self,
+        config: ServiceConfig,
+        actor_factory: ActorFactory,
+        learner: ray.actor.ActorHandle,
+    ) -> None:
+        self.config = config
+        self.actor_factory = actor_factory
+        self.learner = learner
+        self.workers: list[ray.actor.ActorHandle] = []
+        self.metrics = ServiceMetrics()
+        self._version = 0
+        self._weights_ref: ray.ObjectRef | None = None
+        self._worker_version: list[int] = []
+        self._collects: dict[ray.ObjectRef, int] = {}  # collect ref -> worker index
+        self._submits: list[ray.ObjectRef] = []
+        self._started = 0.0
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    def _make_worker(self, index: int) -> ray.actor.ActorHandle:
+        config = self.config
+        return RolloutWorker.options(
+            num_cpus=config.worker_cpus,
+            max_restarts=config.max_worker_restarts,
+            name=None,
+        ).remote(
+            index,
+            config.unity,
+            self.actor_factory,
+            config.horizon,
+            config.port_range,
+            config.registry_dir,
+        )
+
+    def start(self) -> None:
+        self._started = time.perf_counter()
+        self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
+        self._worker_version = [0] * len(self.workers)
+        for index in range(len(self.workers)):
+            for _ in range(self.config.collects_per_worker):
+                self._issue(index)
+
+    def stop(self) -> None:
+        """Close every worker's Unity instance, then end the actors."""
+        closing = [w.close.remote() for w in self.workers]
+        try:
+            ray.get(closing, timeout=60)
+        except Exception as error:  # a dead worker: its launch guard already took the player
+            log.warning("while closing workers: %s", error)
+        for worker in self.workers:
+            ray.kill(worker, no_restart=True)
+        self.workers = []
+        self._collects.clear()
+        self._submits.clear()
+
+    def __enter__(self) -> RolloutService:
+        self.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.stop()
+
+    # --- routing ------------------------------------------------------------------------
+
+    def _issue(self, index: int) -> None:
+        weights = self._weights_ref if self._worker_version[index] < self._version else None
+        ref = self.workers[index].collect.remote(self._version, weights, self.config.min_rows)
+        self._worker_version[index] = self._version
+        self._collects[ref] = index
+
+    def step(self, timeout: float = 60.0) -> int:
+        """Route one finished collect to the learner; returns the segments routed."""
+        self._drain_submits(block=len(self._submits) >= self.config.learner_in_flight)
+        ready, _ = ray.wait(list(self._collects), num_returns=1, timeout=timeout)
+        if not ready:
+            return 0
+        ref = ready[0]
+        index = self._collects.pop(ref)
+        try:
+            segments = ray.get(ref)
+        except RayActorError as error:
+            self.metrics.worker_restarts += 1
+            log.warning("worker %d died (%s); Ray restarts it", index, error)
+            self._worker_version[index] = 0  # a restarted worker needs the weights again
+            self._issue(index)
+            return 0
+        self._submits.append(self.learner.submit.remote(ref))
+        self._observe(segments)
+        self._issue(index)
+        return len(segments)
+
+    def _drain_submits(self, block: bool) -> None:
+        if not self._submits:
+            return
+        done, self._submits = ray.wait(
+            self._submits,
+            num_returns=1 if block else len(self._submits),
+            timeout=None if block else 0,
+        )
+        for version in ray.get(done):
+            if version > self._version:
+                self._version = version
+                self._weights_ref = self.learner.weights.remote()
+
+    def _observe(self, segments: list) -> None:
+        from rollout import keys
+
+        for segment in segments:
+            self.metrics.segments += 1
+            valid = segment[keys.VALID]
+            lag = self._version - segment[keys.POLICY_VERSION][valid]
+            if lag.numel():
+                self.metrics.policy_lag_max = max(self.metrics.policy_lag_max, int(lag.max()))
+                self.metrics.policy_lag_sum += int(lag.sum())
+                self.metrics.policy_lag_count += int(lag.numel())
+
+    def run(
+        self,
+        agent_steps: int | None = None,
+        seconds: float | None = None,
+        until: Callable[[ServiceMetrics], bool] | None = None,
+        report_every: float = 5.0,
+    ) -> ServiceMetrics:
+        """Route segments until a budget is met; refreshes metrics every ``report_every`` s."""
+        deadline = time.perf_counter() + seconds if seconds is not None else None
+        last_report = 0.0
+        while True:
+            self.step()
+            now = time.perf_counter()
+            if now - last_report >= report_every:
+                self.refresh_metrics()
+                last_report = now
+            if agent_steps is not None and self.metrics.agent_steps >= agent_steps:
+                break
+            if deadline is not None and now >= deadline:
+                break
+            if until is not None and until(self.metrics):
+                break
+        self._drain_submits(block=False)
+        return self.refresh_metrics()
+
+    def refresh_metrics(self) -> ServiceMetrics:
+        workers: list[CollectorMetrics] = []
+        for worker in self.workers:
+            try:
+                workers.append(ray.get(worker.metrics.remote(), timeout=30))
+            except RayActorError:
+                continue
+        metrics = self.metrics
+        metrics.workers = workers
+        metrics.env_steps = sum(w.env_steps for w in workers)
+        metrics.agent_steps = sum(w.agent_steps for w in workers)
+        metrics.unity_restarts = sum(w.restarts for w in workers)
+        metrics.dropped_steps = sum(w.dropped_steps for w in workers)
+        metrics.seconds = time.perf_counter() - self._started
+        return metrics

@@ -1,0 +1,57 @@
+"""The rollout worker as a Ray actor: a thin shell around :class:`rollout.collector.Collector`.
+
+It owns exactly one Unity instance (one CPU by default, one torch thread). The service
+calls ``collect(version, weights)``: weights arrive as an ObjectRef resolved by Ray, only
+when a newer version exists; segments go back as the call's result, an ObjectRef the
+service hands to the learner without touching the data.
+"""
+
+from __future__ import annotations
+
+import os
+
+import ray
+import torch
+from tensordict import TensorDict
+
+from rollout.collector import ActorFactory, Collector, CollectorMetrics, Weights
+from rollout.ports import PortAllocator, PortRange
+from rollout.unity import UnityConfig
+
+
+@ray.remote(num_cpus=1)
+class RolloutWorker:
+    def __init__(
+        self,
+        index: int,
+        unity: UnityConfig,
+        actor_factory: ActorFactory,
+        horizon: int,
+        port_range: PortRange | None = None,
+        registry_dir: str | None = None,
+    ) -> None:
+        torch.set_num_threads(1)
+        allocator = PortAllocator(port_range, registry_dir)
+        self.collector = Collector(unity, actor_factory, horizon, index, allocator)
+        self.collector.start()
+
+    def collect(self, version: int, weights: Weights | None, min_rows: int) -> list[TensorDict]:
+        if weights is not None:
+            self.collector.load_weights(version, weights)
+        return self.collector.collect(min_rows)
+
+    def metrics(self) -> CollectorMetrics:
+        return self.collector.snapshot()
+
+    def identity(self) -> dict[str, int | None]:
+        """Process ids and port, for supervision and tests."""
+        unity = self.collector.unity
+        return {
+            "pid": os.getpid(),
+            "player_pid": unity.player_pid if unity.env is not None else None,
+            "port": unity.port,
+            "restarts": unity.restarts,
+        }
+
+    def close(self) -> None:
+        self.collector.close()
