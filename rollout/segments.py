@@ -169,6 +169,7 @@ class SegmentBuilder:
             )
         if len(decisions):
             slots = self._slots(decisions.agent_id.astype(np.int64), create=True)
+            f = self._f  # the storage may have grown for new agents
             f["ended"][slots] = False
             f["idle"][slots] = 0
             rows = np.flatnonzero(f["pending"][slots])
@@ -228,8 +229,8 @@ class SegmentBuilder:
         """Remember what the decision agents were told to do, to complete next exchange."""
         if not len(decisions):
             return
-        f = self._f
         slots = self._slots(decisions.agent_id.astype(np.int64), create=True)
+        f = self._f  # read after _slots: the storage may have grown
         for (name, _), values in zip(self._sensors, decisions.obs, strict=True):
             f[f"p_obs/{name}"][slots] = values
         f["p_cont"][slots] = chosen.continuous

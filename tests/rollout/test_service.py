@@ -1,0 +1,171 @@
+"""The rollout service on real Ray in local mode (2 CPUs), unitysim over real gRPC."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import psutil
+import pytest
+import torch
+
+from learners.policies import actor_factory
+from rollout import keys
+from rollout.ports import PortAllocator, PortRange
+from rollout.service import RolloutService, ServiceConfig
+from rollout.specs import step_spec
+from rollout.testing import CountingLearner
+from rollout.unity import UnityConfig
+from rollout.worker import RolloutWorker
+
+pytestmark = pytest.mark.integration
+PORTS = PortRange(24300, 24399)
+
+
+@pytest.fixture
+def registry(tmp_path):
+    directory = tmp_path / "ports"
+    yield str(directory)
+    assert PortAllocator(PORTS, directory).leases() == {}, "a test left a port leased"
+
+
+def start_worker(ray, registry: str, build: str, horizon: int = 16, **unity):
+    worker = RolloutWorker.options(num_cpus=0.5, max_restarts=0).remote(
+        0, UnityConfig(build, **unity), actor_factory, horizon, PORTS, registry
+    )
+    return worker
+
+
+def collect(ray, worker, times: int) -> list:
+    segments = []
+    for _ in range(times):
+        segments += ray.get(worker.collect.remote(0, None, 1))
+    return segments
+
+
+def stop_worker(ray, worker) -> None:
+    ray.get(worker.close.remote())
+    ray.kill(worker)
+
+
+def check_spec(segment, specs) -> None:
+    behavior = segment.get_non_tensor(keys.BEHAVIOR)
+    spec = step_spec(specs[behavior]).expand(*segment.batch_size)
+    assert spec.is_in(segment.exclude(keys.BEHAVIOR)), behavior
+
+
+def test_dungeon_escape_agents_come_and_go(ray_session, registry):
+    worker = start_worker(ray_session, registry, "unitysim:DungeonEscape", horizon=16)
+    segments, newest = [], 0
+    try:
+        for _ in range(300):  # a room resets (bringing agents back with new ids) in ~500 steps
+            segments += collect(ray_session, worker, 1)
+            newest = max(newest, int(segments[-1][keys.AGENT_ID].max()))
+            if newest >= 36:
+                break
+    finally:
+        stop_worker(ray_session, worker)
+    ids = torch.cat([s[keys.AGENT_ID][s[keys.VALID]] for s in segments])
+    assert int(ids.max()) >= 36, "new agents appeared after the first 36"
+    assert any((~s[keys.VALID]).any() for s in segments), "departed agents end padded rows"
+    group_rewards = torch.cat([s[keys.NEXT, keys.GROUP_REWARD][s[keys.VALID]] for s in segments])
+    assert group_rewards.shape[0] == ids.shape[0]
+
+
+def test_walljump_agents_switch_behaviors(ray_session, registry):
+    worker = start_worker(ray_session, registry, "unitysim:WallJump", horizon=16)
+    try:
+        segments = collect(ray_session, worker, 30)
+        metrics = ray_session.get(worker.metrics.remote())
+    finally:
+        stop_worker(ray_session, worker)
+    by_behavior: dict[str, set[int]] = {}
+    for segment in segments:
+        ids = set(segment[keys.AGENT_ID][segment[keys.VALID]].tolist())
+        by_behavior.setdefault(segment.get_non_tensor(keys.BEHAVIOR), set()).update(ids)
+    assert set(by_behavior) == {"SmallWallJump?team=0", "BigWallJump?team=0"}
+    assert by_behavior["SmallWallJump?team=0"] & by_behavior["BigWallJump?team=0"], (
+        "some agent id acted under both behaviors"
+    )
+    done = sum(int(s[keys.NEXT, keys.DONE][s[keys.VALID]].sum()) for s in segments)
+    assert done > 0, "the old behavior's trajectory ended before the switch"
+    assert metrics.dropped_steps == 0
+
+
+def test_soccer_two_behaviors_and_gridworld_masks(ray_session, registry):
+    soccer = start_worker(ray_session, registry, "unitysim:SoccerTwos", horizon=8)
+    grid = start_worker(ray_session, registry, "unitysim:GridWorld", horizon=8)
+    try:
+        soccer_segments = collect(ray_session, soccer, 4)
+        grid_segments = collect(ray_session, grid, 10)
+    finally:
+        stop_worker(ray_session, soccer)
+        stop_worker(ray_session, grid)
+    assert {s.get_non_tensor(keys.BEHAVIOR) for s in soccer_segments} == {
+        "SoccerTwos?team=0",
+        "SoccerTwos?team=1",
+    }
+    masked_choices = 0
+    for segment in grid_segments:
+        valid = segment[keys.VALID]
+        image = segment[keys.OBS, "CameraSensor"]
+        assert image.shape[2:] == (3, 40, 40) or image.shape[2] == 3
+        action = segment[keys.ACTION, keys.DISCRETE][..., 0]
+        allowed = segment[keys.ACTION_MASK]
+        assert torch.gather(allowed, -1, action.unsqueeze(-1))[..., 0][valid].all()
+        masked_choices += int((~allowed[valid]).sum())
+    assert masked_choices > 0, "walls masked some moves, and none of them was sampled"
+
+
+def test_grid_food_collector_hybrid_actions(ray_session, registry):
+    worker = start_worker(ray_session, registry, "unitysim:GridFoodCollector", horizon=8)
+    try:
+        (segment, *_) = collect(ray_session, worker, 1)
+    finally:
+        stop_worker(ray_session, worker)
+    assert segment[keys.ACTION, keys.CONTINUOUS].shape[-1] == 3
+    assert segment[keys.ACTION, keys.DISCRETE].shape[-1] == 1
+    assert segment[keys.OBS, "GridSensor-OneHot"].shape[-3:] == (5, 40, 40)
+    assert segment[keys.ACTION_MASK].shape[-1] == 2
+
+
+def wait_gone(pid: int, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_service_routes_segments_and_weights_and_survives_a_killed_worker(ray_session, registry):
+    learner = ray_session.remote(CountingLearner).remote(actor_factory, bump_every=2)
+    config = ServiceConfig(
+        UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
+        num_workers=2,
+        horizon=16,
+        worker_cpus=0.5,
+        port_range=PORTS,
+        registry_dir=registry,
+    )
+    service = RolloutService(config, actor_factory, learner)
+    try:
+        service.start()
+        service.run(agent_steps=3000)
+        victim = ray_session.get(service.workers[0].identity.remote())
+        os.kill(victim["pid"], signal.SIGKILL)
+        # The launch guard ends the player with its worker (its own parent watch is off).
+        assert wait_gone(victim["player_pid"], 5.0), "player survived its killed worker"
+        before = service.metrics.segments
+        metrics = service.run(seconds=15)
+        assert metrics.worker_restarts >= 1
+        assert metrics.segments > before
+        summary = ray_session.get(learner.summary.remote())
+    finally:
+        service.stop()
+        ray_session.kill(learner)
+    assert summary["version"] >= 3
+    assert len(summary["versions_seen"]) >= 3, "workers picked up newer weights"
+    assert summary["valid_steps"]["3DBall?team=0"] >= 3000
+    assert metrics.policy_lag_count > 0 and metrics.policy_lag_max >= 0
