@@ -16,8 +16,10 @@ from dataclasses import dataclass
 import torch
 from mlagents_envs.base_env import BehaviorSpec
 from torch import nn
-from torch.distributions import Normal
+from torch.distributions import Categorical, Normal
 from torchrl.modules import MaskedCategorical
+
+_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -80,22 +82,25 @@ class ActorCritic(nn.Module):
 
     def distributions(
         self, hidden: torch.Tensor, mask: torch.Tensor | None
-    ) -> tuple[Normal | None, list[MaskedCategorical]]:
+    ) -> tuple[Normal | None, list[Categorical]]:
         normal = None
         if self.mean is not None and self.log_std is not None:
-            normal = Normal(self.mean(hidden), self.log_std.exp().expand(self.continuous))
-        branches = []
-        if self.logits is not None:
-            logits = torch.split(self.logits(hidden), self.branches, dim=-1)
-            masks = (
-                torch.split(mask, self.branches, dim=-1)
-                if mask is not None
-                else [None] * len(self.branches)
-            )
-            branches = [
-                MaskedCategorical(logits=lg, mask=m) for lg, m in zip(logits, masks, strict=True)
-            ]
-        return normal, branches
+            mean = self.mean(hidden)
+            # validate_args=False: argument checks cost more than the tiny MLP per step
+            normal = Normal(mean, self.log_std.exp().expand_as(mean), validate_args=False)
+        return normal, self.branch_distributions(hidden, mask)
+
+    def branch_distributions(
+        self, hidden: torch.Tensor, mask: torch.Tensor | None
+    ) -> list[Categorical]:
+        """One categorical per discrete branch; masked actions (mask False) get probability 0."""
+        if self.logits is None:
+            return []
+        logits = torch.split(self.logits(hidden), self.branches, dim=-1)
+        if mask is None:
+            return [Categorical(logits=lg, validate_args=False) for lg in logits]
+        masks = torch.split(mask, self.branches, dim=-1)
+        return [MaskedCategorical(logits=lg, mask=m) for lg, m in zip(logits, masks, strict=True)]
 
     @torch.no_grad()
     def act(
@@ -106,18 +111,34 @@ class ActorCritic(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(continuous [n, c], discrete [n, branches] int64, log-prob [n]) for a batch."""
         hidden = self.features(obs)
-        normal, branches = self.distributions(hidden, mask)
         n = hidden.shape[0]
         log_prob = torch.zeros(n)
         continuous = torch.zeros(n, 0)
-        if normal is not None:
-            continuous = normal.mean if deterministic else normal.sample()
-            log_prob = log_prob + normal.log_prob(continuous).sum(-1)
+        if self.mean is not None and self.log_std is not None:
+            # The Gaussian by hand: on the acting hot path, Distribution objects cost more
+            # than the network (same values as Normal.sample / Normal.log_prob).
+            mean, log_std = self.mean(hidden), self.log_std
+            noise = torch.zeros_like(mean) if deterministic else torch.randn_like(mean)
+            continuous = mean + noise * log_std.exp()
+            log_prob = (-0.5 * noise.square() - log_std - _HALF_LOG_2PI).sum(-1)
         discrete = torch.zeros(n, 0, dtype=torch.int64)
-        if branches:
-            picks = [(d.probs.argmax(-1) if deterministic else d.sample()) for d in branches]
+        if self.logits is not None:
+            # Gumbel-max sampling per branch over masked log-softmax logits: the same law
+            # as MaskedCategorical.sample, without building distribution objects.
+            logits = self.logits(hidden)
+            if mask is not None:
+                logits = logits.masked_fill(~mask, float("-inf"))
+            picks, offset = [], 0
+            for size in self.branches:
+                branch_logp = torch.log_softmax(logits[:, offset : offset + size], dim=-1)
+                offset += size
+                scores = branch_logp
+                if not deterministic:
+                    scores = branch_logp - torch.empty_like(branch_logp).exponential_().log()
+                pick = scores.argmax(-1)
+                log_prob = log_prob + branch_logp.gather(-1, pick.unsqueeze(-1)).squeeze(-1)
+                picks.append(pick)
             discrete = torch.stack(picks, dim=-1)
-            log_prob = log_prob + sum(d.log_prob(p) for d, p in zip(branches, picks, strict=True))
         return continuous, discrete, log_prob
 
     def evaluate(

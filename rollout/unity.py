@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import queue
 import shlex
 import signal
 import subprocess
@@ -155,9 +156,56 @@ def _guard_launcher(executable: str) -> str:
 # --- the mlagents subclasses ------------------------------------------------------------
 
 
+_CLOSED = object()
+
+
+class _ThreadPipe:
+    """The end of a two-way, in-process channel with the API mlagents uses of a
+    ``multiprocessing`` Connection (send / recv / poll / close), minus the pickling and
+    the syscalls: both ends live in one process (the gRPC handler thread and ours)."""
+
+    def __init__(self, inbox: queue.SimpleQueue, outbox: queue.SimpleQueue) -> None:
+        self._inbox, self._outbox = inbox, outbox
+        self._stash: list[object] = []
+
+    def send(self, message: object) -> None:
+        self._outbox.put(message)
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        if not self._stash:
+            try:
+                self._stash.append(
+                    self._inbox.get(timeout=timeout) if timeout else self._inbox.get_nowait()
+                )
+            except queue.Empty:
+                return False
+        return True
+
+    def recv(self) -> object:
+        message = self._stash.pop() if self._stash else self._inbox.get()
+        if message is _CLOSED:
+            self._inbox.put(_CLOSED)  # wake any other reader too
+            raise EOFError("the other end closed the channel")
+        return message
+
+    def close(self) -> None:
+        self._outbox.put(_CLOSED)
+
+
+class _ThreadedServicer(UnityToExternalServicerImplementation):
+    """mlagents' servicer with the multiprocessing Pipe replaced by in-process queues."""
+
+    def __init__(self) -> None:  # no super().__init__(): it would open a Pipe
+        to_python: queue.SimpleQueue = queue.SimpleQueue()
+        to_unity: queue.SimpleQueue = queue.SimpleQueue()
+        self.parent_conn = _ThreadPipe(inbox=to_python, outbox=to_unity)
+        self.child_conn = _ThreadPipe(inbox=to_unity, outbox=to_python)
+
+
 class LoopbackCommunicator(RpcCommunicator):
     """mlagents' server, but on 127.0.0.1 only and without SO_REUSEPORT, so a second
-    server on the same port fails loudly instead of splitting the traffic."""
+    server on the same port fails loudly instead of splitting the traffic; the gRPC
+    thread hands messages over through in-process queues instead of a pickling Pipe."""
 
     def __init__(self, port: int, timeout_wait: int, on_bound: Callable[[int], None]) -> None:
         self._on_bound = on_bound
@@ -168,7 +216,7 @@ class LoopbackCommunicator(RpcCommunicator):
             thread_pool=ThreadPoolExecutor(max_workers=10),
             options=(("grpc.so_reuseport", 0),),
         )
-        self.unity_to_external = UnityToExternalServicerImplementation()
+        self.unity_to_external = _ThreadedServicer()
         add_UnityToExternalProtoServicer_to_server(self.unity_to_external, server)
         try:
             bound = server.add_insecure_port(f"127.0.0.1:{self.port}")

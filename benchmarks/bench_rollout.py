@@ -1,0 +1,210 @@
+"""Collection throughput, side by side in one run, on a unitysim environment (3DBall).
+
+(a) the raw ``UnityEnvironment`` random-action loop; (b) torchrl's ``UnityMLAgentsWrapper``
+taking random steps; (c) our collector with an MLP policy emitting ``[B, T]`` segments,
+in-process; then the Ray service with 1 and 2 workers and a counting learner (scaling,
+bytes per second to the learner, share of worker time outside ``collect``: transport and
+Ray overhead), and the workers' resident memory over the run.
+
+    .venv/bin/python benchmarks/bench_rollout.py --seconds 20 [--json out.json]
+    .venv/bin/python benchmarks/bench_rollout.py --memory-minutes 10   # long memory run
+"""
+
+from __future__ import annotations
+
+import rollout.compat  # noqa: F401  (first: makes mlagents-envs import on modern protobuf)
+
+# isort: split
+
+import argparse
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from mlagents_envs.environment import UnityEnvironment
+
+from learners.policies import actor_factory
+from rollout.collector import Collector
+from rollout.ports import PortAllocator
+from rollout.unity import UnityConfig
+from unitysim.launcher import build
+
+
+def machine() -> str:
+    cpu = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}"
+
+
+def raw_loop(path: str, port: int, seconds: float) -> float:
+    env = UnityEnvironment(file_name=path, base_port=port, no_graphics=True, timeout_wait=30)
+    try:
+        env.reset()
+        behavior = next(iter(env.behavior_specs))
+        spec = env.behavior_specs[behavior]
+
+        def run(duration: float) -> tuple[int, float]:
+            agents, started = 0, time.perf_counter()
+            while time.perf_counter() - started < duration:
+                decisions, _ = env.get_steps(behavior)
+                env.set_actions(behavior, spec.action_spec.random_action(len(decisions)))
+                env.step()
+                agents += len(decisions)
+            return agents, time.perf_counter() - started
+
+        run(2.0)
+        agents, elapsed = run(seconds)
+        return agents / elapsed
+    finally:
+        env.close()
+
+
+def torchrl_loop(path: str, port: int, seconds: float) -> float:
+    from torchrl.envs import UnityMLAgentsWrapper
+
+    unity = UnityEnvironment(file_name=path, base_port=port, no_graphics=True, timeout_wait=30)
+    env = UnityMLAgentsWrapper(env=unity)
+    try:
+        group = next(iter(env.group_map))
+        per_step = len(env.group_map[group])
+
+        def run(duration: float) -> tuple[int, float]:
+            steps, started = 0, time.perf_counter()
+            td = env.reset()
+            while time.perf_counter() - started < duration:
+                td = env.rand_step(td)
+                steps += 1
+                td = td["next"]
+            return steps * per_step, time.perf_counter() - started
+
+        run(2.0)
+        agent_steps, elapsed = run(seconds)
+        return agent_steps / elapsed
+    finally:
+        env.close()
+
+
+def collector_loop(build_name: str, seconds: float, registry: str) -> dict:
+    torch.set_num_threads(1)
+    collector = Collector(
+        UnityConfig(build_name),
+        actor_factory,
+        horizon=64,
+        allocator=PortAllocator(registry_dir=registry),
+    )
+    try:
+        collector.collect()
+        started_steps = collector.snapshot().agent_steps
+        started = time.perf_counter()
+        while time.perf_counter() - started < seconds:
+            collector.collect()
+        elapsed = time.perf_counter() - started
+        return {"agent_steps_per_s": (collector.snapshot().agent_steps - started_steps) / elapsed}
+    finally:
+        collector.close()
+
+
+def service_run(build_name: str, workers: int, seconds: float, registry: str) -> dict:
+    import psutil
+    import ray
+
+    from rollout.service import RolloutService, ServiceConfig
+    from rollout.testing import CountingLearner
+
+    learner = ray.remote(CountingLearner).options(num_cpus=0).remote(actor_factory, bump_every=4)
+    config = ServiceConfig(
+        UnityConfig(build_name),
+        num_workers=workers,
+        horizon=64,
+        worker_cpus=1.0 / workers,
+        registry_dir=registry,
+    )
+    with RolloutService(config, actor_factory, learner) as service:
+        service.run(seconds=8.0)  # start-up and warm-up
+        first = service.refresh_metrics()
+        steps0, collect0 = first.agent_steps, sum(w.seconds for w in first.workers)
+        bytes0 = ray.get(learner.summary.remote())["bytes"]
+        pids = [ray.get(w.identity.remote())["pid"] for w in service.workers]
+        rss0 = [psutil.Process(p).memory_info().rss for p in pids]
+        started = time.perf_counter()
+        metrics = service.run(seconds=seconds)
+        elapsed = time.perf_counter() - started
+        bytes1 = ray.get(learner.summary.remote())["bytes"]
+        rss1 = [psutil.Process(p).memory_info().rss for p in pids]
+        collect_s = sum(w.seconds for w in metrics.workers) - collect0
+    ray.kill(learner)
+    return {
+        "workers": workers,
+        "agent_steps_per_s": (metrics.agent_steps - steps0) / elapsed,
+        "bytes_per_s": (bytes1 - bytes0) / elapsed,
+        "outside_collect_share": max(0.0, 1.0 - collect_s / (elapsed * workers)),
+        "policy_lag_mean": metrics.policy_lag_mean,
+        "worker_rss_mb": [round(r / 2**20, 1) for r in rss1],
+        "worker_rss_growth": [round(b / a - 1.0, 3) for a, b in zip(rss0, rss1, strict=True)],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--env", default="3DBall")
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--memory-minutes", type=float, default=0.0)
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+
+    builds = Path(tempfile.mkdtemp(prefix="bench-rollout-"))
+    build(builds, [args.env])
+    path = str(builds / args.env)
+    registry = str(builds / "ports")
+    allocator = PortAllocator(registry_dir=registry)
+    results: dict = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "env": args.env}
+
+    port = allocator.lease()
+    results["a_raw_agent_steps_per_s"] = raw_loop(path, port, args.seconds)
+    allocator.release(port)
+    port = allocator.lease()
+    results["b_torchrl_agent_steps_per_s"] = torchrl_loop(path, port, args.seconds)
+    allocator.release(port)
+    results["c_collector"] = collector_loop(f"unitysim:{args.env}", args.seconds, registry)
+    c = results["c_collector"]["agent_steps_per_s"]
+    results["c_over_a"] = c / results["a_raw_agent_steps_per_s"]
+    results["c_over_b"] = c / results["b_torchrl_agent_steps_per_s"]
+
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        one = service_run(f"unitysim:{args.env}", 1, args.seconds, registry)
+        two = service_run(f"unitysim:{args.env}", 2, args.seconds, registry)
+        results["service_1_worker"], results["service_2_workers"] = one, two
+        results["scaling_2_over_1"] = two["agent_steps_per_s"] / one["agent_steps_per_s"]
+        if args.memory_minutes:
+            results["memory_run"] = service_run(
+                f"unitysim:{args.env}", 2, args.memory_minutes * 60, registry
+            )
+    finally:
+        ray.shutdown()
+
+    print(json.dumps(results, indent=2))
+    print(
+        f"\n| {results['date']} | {args.env} | raw {results['a_raw_agent_steps_per_s']:.0f} | "
+        f"torchrl {results['b_torchrl_agent_steps_per_s']:.0f} | ours {c:.0f} | "
+        f"c/a {results['c_over_a']:.2f} | c/b {results['c_over_b']:.1f} | "
+        f"2w/1w {results['scaling_2_over_1']:.2f} |"
+    )
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
