@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections.abc import Callable, Sequence
+from typing import Any
 
 Command = Callable[[argparse.Namespace], int]
 
@@ -36,6 +38,70 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_collect(args: argparse.Namespace) -> int:
+    """Collect with N workers into a counting learner: a pipeline check without training."""
+    import ray
+    from rich.console import Console
+
+    from learners.policies import actor_factory
+    from rollout.service import RolloutService, ServiceConfig
+    from rollout.testing import CountingLearner
+    from rollout.unity import UnityConfig, UnityError, resolve_build
+
+    console = Console()
+    build = None if args.env == "editor" else args.env
+    try:
+        resolve_build(build)
+    except UnityError as error:
+        console.print(f"[red]error:[/red] {error}")
+        return 2
+    if args.address:
+        ray.init(address=args.address)
+    else:
+        ray.init(num_cpus=args.cpus, include_dashboard=False, log_to_driver=False)
+    try:
+        learner = ray.remote(CountingLearner).options(num_cpus=0).remote(actor_factory)
+        config = ServiceConfig(
+            UnityConfig(build, seed=args.seed),
+            num_workers=args.workers,
+            horizon=args.horizon,
+            worker_cpus=min(1.0, args.cpus / args.workers) if not args.address else 1.0,
+        )
+        with RolloutService(config, actor_factory, learner) as service:
+            deadline = time.monotonic() + args.seconds
+            while time.monotonic() < deadline:
+                metrics = service.run(seconds=min(5.0, deadline - time.monotonic()))
+                rate = metrics.agent_steps / max(metrics.seconds, 1e-9)
+                returns = ", ".join(
+                    f"{name}: {mean:.2f}" for name, mean in _mean_returns(metrics).items()
+                )
+                console.print(
+                    f"{metrics.seconds:6.1f}s  agent steps {metrics.agent_steps:>8}  "
+                    f"({rate:,.0f}/s)  lag {metrics.policy_lag_mean:.2f}  "
+                    f"restarts {metrics.unity_restarts}  returns {returns or '-'}"
+                )
+        console.print(ray.get(learner.summary.remote()))
+    finally:
+        ray.shutdown()
+    return 0
+
+
+def _mean_returns(metrics: Any) -> dict[str, float]:
+    totals: dict[str, list[float]] = {}
+    for worker in metrics.workers:
+        for name, stats in worker.behaviors.items():
+            entry = totals.setdefault(name, [0.0, 0.0])
+            entry[0] += stats.return_sum
+            entry[1] += stats.episodes
+    return {name: total / count for name, (total, count) in totals.items() if count}
+
+
+def _cmd_unitysim(args: argparse.Namespace) -> int:
+    from unitysim.__main__ import main as unitysim_main
+
+    return unitysim_main(args.unitysim_args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="unity-rollout",
@@ -44,6 +110,26 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     doctor = commands.add_parser("doctor", help="check that mlagents-envs imports here")
     doctor.set_defaults(func=_cmd_doctor)
+
+    collect = commands.add_parser(
+        "collect", help="collect with Ray workers into a counting learner (no training)"
+    )
+    collect.add_argument(
+        "--env", default="unitysim:3DBall", help="unitysim:<Env>, a build path, or 'editor'"
+    )
+    collect.add_argument("--workers", type=int, default=2)
+    collect.add_argument("--seconds", type=float, default=30.0)
+    collect.add_argument("--horizon", type=int, default=64)
+    collect.add_argument("--seed", type=int, default=0)
+    collect.add_argument("--cpus", type=int, default=2, help="local mode: ray.init(num_cpus)")
+    collect.add_argument("--address", help="an existing Ray cluster (e.g. auto)")
+    collect.set_defaults(func=_cmd_collect)
+
+    unitysim = commands.add_parser(
+        "unitysim", help="the headless Unity stand-in (build, list, play, editor)"
+    )
+    unitysim.add_argument("unitysim_args", nargs=argparse.REMAINDER)
+    unitysim.set_defaults(func=_cmd_unitysim)
     return parser
 
 

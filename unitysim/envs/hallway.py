@@ -1,0 +1,110 @@
+"""Hallway: go to the goal whose colour matches the symbol (ML-Agents example, spec-faithful).
+
+Sixteen rooms, one agent each (ids 0..15, no groups). At the far end of a 12 x 6 room
+(+x) a symbol block, orange or red, stands between two goals, one orange and one red, on
+random sides. The agent starts at the near end facing roughly +x. Touching the goal of
+the symbol's colour sets the reward to +1, the other goal to -0.1; both end the episode.
+Every step costs -1 / MaxStep (3000, interrupted). In the real scene the symbol is in a
+side room and the agent needs memory; here it stays in view from the goals, so frame
+stacking suffices.
+
+Sensors as in the dump: 5 rays over ±60° (tags orange goal, red goal, orange block, red
+block, wall), 3 frames stacked: 105; and StepCount / MaxStep, 3 frames stacked: 3.
+Actions: one branch of 5 (none, forward, back, turn right, turn left); nothing masked.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from unitysim.envs.arena import (
+    MOVES,
+    ArenaEnv,
+    FrameStack,
+    Rays,
+    drive,
+    limits,
+    overlaps,
+    perceive,
+    steer,
+)
+from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+
+HALF = (6.0, 3.0)
+RADIUS = 0.5
+LIMITS = limits(HALF, RADIUS)
+MAX_STEP = 3000
+ORANGE_GOAL, RED_GOAL, ORANGE_BLOCK, RED_BLOCK, WALL = range(5)
+RAYS = Rays(2, 60.0, 14.0, 5)
+# ray objects of a room: the symbol, the goal at +y, the goal at -y
+CENTERS = np.array([[5.5, 0.0], [5.5, 2.0], [5.5, -2.0]])
+SIZES = np.array([[0.5, 0.5], [0.5, 0.8], [0.5, 0.8]])
+GOALS_LO, GOALS_HI = CENTERS[1:] - SIZES[1:], CENTERS[1:] + SIZES[1:]
+
+
+class Hallway(ArenaEnv):
+    name = "Hallway"
+    behaviors = (
+        Behavior(
+            "Hallway?team=0",
+            (
+                Sensor.vector("StackingSensor_size3_RayPerceptionSensor", 3 * RAYS.size),
+                Sensor.vector("StackingSensor_size3_VectorSensor_size1", 3),
+            ),
+            branches=(5,),
+        ),
+    )
+    fields_per_area = 16
+
+    def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
+        super().__init__(rng, num_areas, params)
+        self.pos = np.zeros((self.n, 2))
+        self.heading = np.zeros(self.n)
+        self.motion = np.zeros(self.n, dtype=complex)
+        self.turn = np.zeros(self.n)
+        self.red = np.zeros(self.n, dtype=bool)  # the symbol's colour
+        self.orange_up = np.zeros(self.n, dtype=bool)  # the orange goal is the one at +y
+        self.rays = FrameStack(self.n, 3, RAYS.size)
+        self.clock = FrameStack(self.n, 3, 1)
+
+    def _begin(self, which: np.ndarray) -> None:
+        k = int(which.sum())
+        self.pos[which] = np.column_stack(
+            [self.rng.uniform(-5.4, -4.0, k), self.rng.uniform(-2.4, 2.4, k)]
+        )
+        self.heading[which] = self.rng.uniform(-0.6, 0.6, k)
+        self.motion[which] = 0.0
+        self.turn[which] = 0.0
+        self.red[which] = self.rng.random(k) < 0.5
+        self.orange_up[which] = self.rng.random(k) < 0.5
+        self.rays.clear(which)
+        self.clock.clear(which)
+
+    def _act(self, rows: np.ndarray, actions: Actions) -> None:
+        c = MOVES[np.clip(actions.discrete[:, 0], 0, 4)]
+        self.motion[rows], self.turn[rows] = steer(c[:, 0], c[:, 1], c[:, 2], 2.0, np.pi)
+
+    def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
+        drive(self.pos, self.heading, self.motion, self.turn, *LIMITS)
+        self.reward -= 1.0 / MAX_STEP
+        touched = overlaps(self.pos, RADIUS, GOALS_LO, GOALS_HI)
+        done = touched.any(axis=1)
+        if done.any():  # SetReward: the step's reward is replaced
+            # the touched goal is orange if it is the +y one and orange is up, or vice versa
+            orange = np.where(touched[:, 0], self.orange_up, ~self.orange_up)
+            self.reward[done] = np.where(orange != self.red, 1.0, -0.1)[done]
+        interrupted = ~done & (self.episode_steps >= MAX_STEP)
+        return done | interrupted, interrupted
+
+    def _observe(self, behavior: int, rows: np.ndarray) -> list[np.ndarray]:
+        up = self.orange_up[rows]
+        table = np.empty((len(rows), 4), dtype=np.int64)
+        table[:, 0] = np.where(self.red[rows], RED_BLOCK, ORANGE_BLOCK)
+        table[:, 1] = np.where(up, ORANGE_GOAL, RED_GOAL)
+        table[:, 2] = np.where(up, RED_GOAL, ORANGE_GOAL)
+        table[:, 3] = WALL
+        lo = np.broadcast_to(CENTERS - SIZES, (len(rows), 3, 2))
+        hi = np.broadcast_to(CENTERS + SIZES, (len(rows), 3, 2))
+        (frame,) = perceive((RAYS,), self.pos[rows], self.heading[rows], lo, hi, HALF, table)
+        time = (self.episode_steps[rows] / MAX_STEP).astype(np.float32)[:, None]
+        return [self.rays.push(rows, frame), self.clock.push(rows, time)]
