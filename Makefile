@@ -9,7 +9,7 @@ venv:
 	@scripts/setup-venv.sh
 
 run: venv
-	$(VENV)/bin/unity-rollout $(if $(ARGS),$(ARGS),doctor)
+	$(VENV)/bin/unity-rollout $(if $(ARGS),$(ARGS),collect)
 
 lint: venv
 	$(VENV)/bin/ruff check .
