@@ -68,6 +68,8 @@ def _cmd_collect(args: argparse.Namespace) -> int:
             worker_cpus=min(1.0, args.cpus / args.workers) if not args.address else 1.0,
         )
         with RolloutService(config, actor_factory, learner) as service:
+            console.print(f"starting {args.workers} workers on {args.env} ...")
+            service.run(until=lambda m: m.segments > 0)  # start-up is not in the budget
             deadline = time.monotonic() + args.seconds
             while time.monotonic() < deadline:
                 metrics = service.run(seconds=min(5.0, deadline - time.monotonic()))
