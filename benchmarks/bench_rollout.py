@@ -79,12 +79,11 @@ def torchrl_loop(path: str, port: int, seconds: float) -> float:
         per_step = len(env.group_map[group])
 
         def run(duration: float) -> tuple[int, float]:
+            """torchrl's own loop: ``rollout`` with its random policy, 100 steps a call."""
             steps, started = 0, time.perf_counter()
-            td = env.reset()
             while time.perf_counter() - started < duration:
-                td = env.rand_step(td)
-                steps += 1
-                td = td["next"]
+                rollout = env.rollout(100, break_when_any_done=False)
+                steps += rollout.batch_size[-1]
             return steps * per_step, time.perf_counter() - started
 
         run(2.0)

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
-import time
 
-import psutil
 import pytest
 import torch
 
@@ -18,6 +16,7 @@ from rollout.specs import step_spec
 from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker
+from tests.helpers import wait_gone
 
 pytestmark = pytest.mark.integration
 PORTS = PortRange(24300, 24399)
@@ -128,15 +127,6 @@ def test_grid_food_collector_hybrid_actions(ray_session, registry):
     assert segment[keys.ACTION, keys.DISCRETE].shape[-1] == 1
     assert segment[keys.OBS, "GridSensor-OneHot"].shape[-3:] == (5, 40, 40)
     assert segment[keys.ACTION_MASK].shape[-1] == 2
-
-
-def wait_gone(pid: int, seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
-            return True
-        time.sleep(0.1)
-    return False
 
 
 def test_service_routes_segments_and_weights_and_survives_a_killed_worker(ray_session, registry):

@@ -7,7 +7,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import grpc
@@ -17,6 +16,7 @@ import pytest
 
 from rollout.ports import PortAllocator, PortRange
 from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance, resolve_build
+from tests.helpers import wait_gone
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[2]
@@ -28,18 +28,6 @@ def allocator(tmp_path):
     allocator = PortAllocator(PortRange(24000, 24099), tmp_path / "ports", quarantine_s=60)
     yield allocator
     assert allocator.leases() == {}, "a test left a port leased"
-
-
-def wait_gone(pid: int, seconds: float) -> bool:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        try:
-            if psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
-                return True
-        except psutil.NoSuchProcess:
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_instance_runs_on_a_confirmed_loopback_port(allocator):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import socket
 import subprocess
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -11,14 +10,8 @@ from pathlib import Path
 import pytest
 from mlagents_envs.environment import UnityEnvironment
 
+from tests.helpers import free_port
 from unitysim.launcher import build
-
-
-def free_port() -> int:
-    """A port nothing listens on right now (the port allocator replaces this later)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 @pytest.fixture(scope="session")

@@ -15,7 +15,7 @@ from mlagents_envs.side_channel.environment_parameters_channel import (
     EnvironmentParametersChannel,
 )
 
-from tests.unitysim.conftest import free_port
+from tests.helpers import free_port
 
 pytestmark = pytest.mark.integration
 BALL = "3DBall?team=0"

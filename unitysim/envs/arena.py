@@ -285,6 +285,11 @@ class ArenaEnv(SimEnv):
         self.ids = np.arange(self.n, dtype=np.int32)
         self.next_id = self.n
         self.alive = np.ones(self.n, dtype=bool)
+        # Planar kinematics of every agent (see ``steer`` and ``drive``).
+        self.pos = np.zeros((self.n, 2))
+        self.heading = np.zeros(self.n)
+        self.motion = np.zeros(self.n, dtype=complex)  # per physics step, see ``steer``
+        self.turn = np.zeros(self.n)
         self.reward = np.zeros(self.n)
         self.group_reward = np.zeros(self.n)
         self.episode_steps = np.zeros(self.n, dtype=np.int64)
@@ -473,10 +478,6 @@ class BallGame(ArenaEnv):
         self.team = np.asarray(self.team_of)[self.beh]
         self._existential = np.asarray(self.existential)[self.beh] / self.max_env_steps
         self.low, self.high = limits(self.half, self.agent_radius)
-        self.pos = np.zeros((self.n, 2))
-        self.heading = np.zeros(self.n)
-        self.motion = np.zeros(self.n, dtype=complex)  # per physics step, see ``steer``
-        self.turn = np.zeros(self.n)
         self.ball = np.zeros((self.fields, 2))
         self.ball_vel = np.zeros((self.fields, 2))
         self.ball_radius, self.friction, self.ball_touch = 0.375, 3.4, 0.0

@@ -68,10 +68,6 @@ class DungeonEscape(ArenaEnv):
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
-        self.pos = np.zeros((self.n, 2))
-        self.heading = np.zeros(self.n)
-        self.motion = np.zeros(self.n, dtype=complex)
-        self.turn = np.zeros(self.n)
         self.has_key = np.zeros(self.n, dtype=bool)
         self.things = np.zeros((self.fields, 4, 2))  # door, key, dragon, portal (FAR = gone)
         self.rays = FrameStack(self.n, 3, RAYS.size)

@@ -56,10 +56,6 @@ class GridFoodCollector(ArenaEnv):
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
-        self.pos = np.zeros((self.n, 2))
-        self.heading = np.zeros(self.n)
-        self.motion = np.zeros(self.n, dtype=complex)  # per physics step, see ``steer``
-        self.turn = np.zeros(self.n)
         self.laser = np.zeros(self.n, dtype=bool)
         self.frozen = np.zeros(self.n, dtype=np.int64)  # physics steps left frozen
         self.food = np.zeros((self.fields, len(KIND), 2))

@@ -58,10 +58,6 @@ class Hallway(ArenaEnv):
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
-        self.pos = np.zeros((self.n, 2))
-        self.heading = np.zeros(self.n)
-        self.motion = np.zeros(self.n, dtype=complex)
-        self.turn = np.zeros(self.n)
         self.red = np.zeros(self.n, dtype=bool)  # the symbol's colour
         self.orange_up = np.zeros(self.n, dtype=bool)  # the orange goal is the one at +y
         self.rays = FrameStack(self.n, 3, RAYS.size)

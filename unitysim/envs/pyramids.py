@@ -63,10 +63,6 @@ class Pyramids(ArenaEnv):
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
-        self.pos = np.zeros((self.n, 2))
-        self.heading = np.zeros(self.n)
-        self.motion = np.zeros(self.n, dtype=complex)
-        self.turn = np.zeros(self.n)
         self.objects = np.zeros((self.n, len(SIZES), 2))  # centres; the pyramid FAR until raised
         self.switched = np.zeros(self.n, dtype=bool)
 

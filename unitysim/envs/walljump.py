@@ -81,12 +81,8 @@ class WallJump(ArenaEnv):
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
         n = self.n
-        self.pos = np.zeros((n, 2))
-        self.heading = np.zeros(n)
         self.z = np.zeros(n)  # height of the agent's feet
         self.vz = np.zeros(n)
-        self.motion = np.zeros(n, dtype=complex)  # per physics step, see ``steer``
-        self.turn = np.zeros(n)
         self.jump = np.zeros(n, dtype=bool)
         self.objects = np.zeros((n, len(SIZES), 2))  # centres of the ray objects
         self.wall = np.zeros(n)  # wall height, 0 = no wall
