@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
+
+# gRPC's event-engine client costs ~30% more CPU per unary call than the classic one
+# (measured: 245-278 vs 176-181 us per exchange); the player makes one call per step.
+# Set before grpc is first imported; an explicit GRPC_EXPERIMENTS wins.
+os.environ.setdefault("GRPC_EXPERIMENTS", "-event_engine_client")
 from collections.abc import Sequence
 
 from unitysim.envs import NAMES

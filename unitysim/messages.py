@@ -3,11 +3,15 @@
 The only module of unitysim that knows the generated message classes (they import
 because ``unitysim/__init__.py`` activates ``rollout.compat``). Field meanings are
 in the protocol note: ``docs`` of the project and ``unity-protocol.md`` §3.
+
+The per-step output built here (:func:`rl_output`) is the reference encoder; the player
+sends the bytes of the fast one in ``unitysim/wire.py``, which tests hold equal to it.
 """
 
 from __future__ import annotations
 
-import io
+import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,11 +30,13 @@ from mlagents_envs.communicator_objects.unity_rl_initialization_output_pb2 impor
 )
 from mlagents_envs.communicator_objects.unity_rl_output_pb2 import UnityRLOutputProto
 
+from unitysim import png
 from unitysim.envs.base import Actions, AgentInfos, Behavior, Sensor
 
 COMMUNICATION_VERSION = "1.5.0"
 PACKAGE_VERSION = "3.0.0"  # the C# package version of Release 22
 STEP, RESET, QUIT = 0, 1, 2
+
 
 __all__ = [
     "COMMUNICATION_VERSION",
@@ -83,20 +89,6 @@ def brain_parameters(behavior: Behavior) -> BrainParametersProto:
     )
 
 
-def _png(chw: np.ndarray) -> bytes:
-    """C channels in [0, 1] as ceil(C/3) concatenated RGB PNGs (greyscale PNGs crash Python)."""
-    from PIL import Image
-
-    channels, height, width = chw.shape
-    padded = np.zeros((-(-channels // 3) * 3, height, width), dtype=np.uint8)
-    padded[:channels] = np.clip(np.rint(chw * 255.0), 0, 255)
-    out = io.BytesIO()
-    for first in range(0, len(padded), 3):
-        hwc = np.ascontiguousarray(np.moveaxis(padded[first : first + 3], 0, -1))
-        Image.fromarray(hwc, mode="RGB").save(out, format="PNG", compress_level=1)
-    return out.getvalue()
-
-
 def _observations(sensor: Sensor, batch: np.ndarray) -> list[ObservationProto]:
     common = {
         "shape": sensor.shape,
@@ -106,14 +98,14 @@ def _observations(sensor: Sensor, batch: np.ndarray) -> list[ObservationProto]:
     }
     if sensor.png:
         return [
-            ObservationProto(compression_type=PNG, compressed_data=_png(row), **common)
+            ObservationProto(compression_type=PNG, compressed_data=png.encode(row), **common)
             for row in batch
         ]
     return [
         ObservationProto(
             compression_type=NONE, float_data=ObservationProto.FloatData(data=row), **common
         )
-        for row in batch.reshape(len(batch), -1).tolist()
+        for row in batch.reshape(len(batch), int(np.prod(sensor.shape))).tolist()
     ]
 
 
@@ -201,11 +193,9 @@ def parse_input(message: UnityMessageProto, behaviors: dict[str, Behavior]) -> I
         if behavior is None:
             continue
         rows = listed.value
-        continuous = np.array([list(a.continuous_actions) for a in rows], dtype=np.float32)
-        discrete = np.array([list(a.discrete_actions) for a in rows], dtype=np.int32)
         actions[name] = Actions(
-            continuous.reshape(len(rows), behavior.continuous),
-            discrete.reshape(len(rows), len(behavior.branches)),
+            _gather(rows, "continuous_actions", behavior.continuous, np.float32),
+            _gather(rows, "discrete_actions", len(behavior.branches), np.int32),
         )
     return Input(
         status=message.header.status,
@@ -213,3 +203,17 @@ def parse_input(message: UnityMessageProto, behaviors: dict[str, Behavior]) -> I
         actions=actions,
         side_channel=rl.side_channel,
     )
+
+
+def _gather(rows: Sequence[object], field: str, width: int, dtype: type) -> np.ndarray:
+    """One repeated field of every AgentActionProto as an (n, width) array, in one pass.
+
+    A total that does not fit (n, width) raises ValueError, as before; rows of unequal
+    lengths adding up to n * width are not told apart (mlagents_envs never sends them)."""
+    n = len(rows)
+    if n == 0 or width == 0:  # (Python sends no values for an action type without any)
+        return np.zeros((n, width), dtype=dtype)
+    values = np.fromiter(
+        itertools.chain.from_iterable([getattr(row, field) for row in rows]), dtype=dtype
+    )
+    return values.reshape(n, width)

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
-from unitysim import messages
+from unitysim import messages, wire
 from unitysim.envs import load
 from unitysim.envs.base import AgentInfos, Behavior, Output, Parameters, SimEnv
 from unitysim.faults import Faults
@@ -57,7 +57,7 @@ class Session:
         self.seen: list[str] = []  # behaviors with a spec on the Python side, in order
         self.steps = 0
 
-    def output(self, result: Output) -> messages.UnityMessageProto:
+    def output(self, result: Output) -> bytes:
         announce = []
         for name, infos in result.items():
             if len(infos) and name not in self.announced:
@@ -67,7 +67,7 @@ class Session:
         # Real Unity lists every subscribed behavior, empty or not.
         full = {name: result.get(name) or _empty(self.behaviors[name]) for name in self.seen}
         stats = encode_stats(self.env.drain_stats())
-        return messages.rl_output(self.behaviors, full, announce, stats)
+        return wire.encode_output(self.behaviors, full, announce, stats)
 
 
 def _empty(behavior: Behavior) -> AgentInfos:
@@ -91,7 +91,7 @@ class Player:
         with grpc.insecure_channel(target, options=options) as channel:
             exchange: Callable[..., messages.UnityMessageProto] = channel.unary_unary(
                 EXCHANGE,
-                request_serializer=messages.UnityMessageProto.SerializeToString,
+                request_serializer=wire.to_bytes,  # steps are sent as encoded bytes
                 response_deserializer=messages.UnityMessageProto.FromString,
             )
             try:
@@ -151,13 +151,12 @@ class Player:
                 session.steps += 1
                 self._before_step(session.steps)
                 result = session.env.step(request.actions)
-            message = session.output(result)
-            self._corrupt(message, session)
+            message, status = self._corrupt(session.output(result), session)
             if self.faults.delay_ms:
                 time.sleep(self.faults.delay_ms / 1000.0)
             reply = exchange(message)
-            if message.header.status != 200:
-                log.error("sent status %d: quitting", message.header.status)
+            if status != 200:
+                log.error("sent status %d: quitting", status)
                 return 1
 
     def _before_step(self, step: int) -> None:
@@ -170,8 +169,13 @@ class Player:
             while True:  # the parent watchdog ends the process once the trainer is gone
                 time.sleep(1.0)
 
-    def _corrupt(self, message: messages.UnityMessageProto, session: Session) -> None:
+    def _corrupt(self, encoded: bytes, session: Session) -> tuple[bytes, int]:
+        """Apply the faults due at this step; returns the bytes to send and their status."""
         faults, step = self.faults, session.steps
+        due = (faults.status_after, faults.nan_after, faults.oversize_after)
+        if not any(faults.due(after, step) for after in due):
+            return encoded, 200
+        message = messages.UnityMessageProto.FromString(encoded)
         if faults.due(faults.status_after, step):
             log.error("fault: sending status %d at step %d", faults.status_code, step)
             message.header.status = faults.status_code
@@ -186,6 +190,7 @@ class Player:
             log.error("fault: sending an oversized message at step %d", step)
             padding = frame(_OVERSIZE_CHANNEL, b"\0" * OVERSIZE_BYTES)
             message.unity_output.rl_output.side_channel += padding
+        return message.SerializeToString(), message.header.status
 
 
 def _start_parent_watchdog(period: float = 0.5) -> None:

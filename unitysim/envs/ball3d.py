@@ -9,6 +9,16 @@ every 5 steps with the last action repeated in between: a perfect episode earns 
 
 Environment parameters, as in the example: ``gravity`` (9.81), ``mass`` (1; a heavier
 ball is pushed less by the moving platform) and ``scale`` (1; the ball's size).
+
+The stand-in must never be what limits a trainer's throughput, so one physics step is a
+few dozen in-place numpy operations on a single (8, n) float64 state array, whose rows are
+laid out for the maths rather than for the observation: the tilts are stored in radians
+and signed so that both horizontal axes obey the same equations (``sigma = [-tilt_z,
+tilt_x]``: the slope then pushes ``x`` by ``sin(sigma[0])`` and ``z`` by ``sin(sigma[1])``,
+and the surface height is ``x * tan(sigma[0]) + z * tan(sigma[1])``). Episode lengths are
+counted from each agent's start step, so MaxStep costs a comparison with one scalar per
+step. The tilt limit is Unity's rule unchanged: a turn is applied while the platform is
+still inside the limit in the direction of the turn (so it may overshoot by one turn).
 """
 
 from __future__ import annotations
@@ -25,7 +35,6 @@ from unitysim.envs.base import (
     Parameters,
     Sensor,
     SimEnv,
-    StatsMethod,
 )
 
 DT = 0.02  # Unity's fixed time step
@@ -35,6 +44,18 @@ HALF_WIDTH = 2.5  # the platform is 5 x 5
 MAX_TILT = np.degrees(2 * np.arcsin(0.25))  # |rotation.z| < 0.25 as a quaternion component
 ROLLING = 5.0 / 7.0  # solid sphere rolling without slipping
 BALL_RADIUS = 0.5
+MAX_SIGMA = float(np.radians(MAX_TILT))
+TURN = float(np.radians(2.0))  # radians per physics step at full action
+SHOVE = 0.05  # how much of the platform's surface speed a (unit mass) ball picks up
+RESTING_TOLERANCE = 1e-6
+
+# Rows of the state array: signed tilts (radians), position (x, z, y), velocity (x, z, y).
+SIGMA, POS, VEL = slice(0, 2), slice(2, 5), slice(5, 8)
+X_Z, Y, V_X_Z, V_Y = slice(2, 4), 4, slice(5, 7), 7
+# State rows in observation order: rotation z, x; position x, y, z; velocity x, y, z.
+OBS_ROWS = np.array([0, 1, 2, 4, 3, 5, 7, 6])
+# From signed tilts (and per-axis turns) back to Unity's (about z, about x) order and signs.
+AXIS_SIGN = np.array([[-1.0], [1.0]])
 
 
 class Ball3D(SimEnv):
@@ -48,14 +69,30 @@ class Ball3D(SimEnv):
         super().__init__(rng, num_areas, params)
         n = self.agents_per_area * self.num_areas
         self.ids = np.arange(n, dtype=np.int32)
-        self.tilt = np.zeros((n, 2), dtype=np.float64)  # degrees about z, about x
-        self.pos = np.zeros((n, 3), dtype=np.float64)  # ball relative to the platform
-        self.vel = np.zeros((n, 3), dtype=np.float64)
-        self.action = np.zeros((n, 2), dtype=np.float64)
+        self.state = np.zeros((8, n), dtype=np.float64)  # never rebound: views below
+        self.sigma, self.xz, self.y = self.state[SIGMA], self.state[X_Z], self.state[Y]
+        self.pos, self.vel = self.state[POS], self.state[VEL]
+        self.v_xz, self.v_y = self.state[V_X_Z], self.state[V_Y]
+        self.reach = np.zeros(n, dtype=np.float64)  # max(|x|, |z|): over the platform?
+        self.accel = np.zeros((3, n), dtype=np.float64)  # velocity change per step, as vel
+        self.turn = np.zeros((2, n), dtype=np.float64)  # signed radians per step, as sigma
+        self.direction = np.zeros((2, n), dtype=np.float64)  # sign(turn)
         self.reward = np.zeros(n, dtype=np.float32)
-        self.episode_steps = np.zeros(n, dtype=np.int64)
+        self.start = np.zeros(n, dtype=np.int64)  # academy step at which the episode began
         self.academy_steps = 0
+        self.next_interrupt = MAX_STEP  # first academy step at which some agent hits MaxStep
         self.gravity = self.mass = self.scale = 1.0
+        self._constants()
+
+    def _constants(self) -> None:
+        """Per-step coefficients of the current parameters (they change at episode begins)."""
+        self.radius = BALL_RADIUS * self.scale
+        self.fall_dv = self.gravity * DT
+        self.accel[2] = -self.fall_dv  # free fall for every ball, every step
+        self.slope_dv = self.gravity * ROLLING * DT
+        # The platform's surface speed is turn / DT * radius; a ball picks up SHOVE / mass of
+        # it per step: dv = SHOVE * turn * radius / mass.
+        self.shove_dv = SHOVE * self.radius / self.mass
 
     # --- episode handling ------------------------------------------------------------
 
@@ -67,24 +104,38 @@ class Ball3D(SimEnv):
         self.gravity = self.params.get("gravity", 9.81)
         self.mass = max(self.params.get("mass", 1.0), 1e-3)
         self.scale = max(self.params.get("scale", 1.0), 1e-3)
-        self.tilt[which] = self.rng.uniform(-10.0, 10.0, size=(k, 2))
-        self.pos[which] = np.column_stack(
-            [self.rng.uniform(-1.5, 1.5, k), np.full(k, 4.0), self.rng.uniform(-1.5, 1.5, k)]
-        )
-        self.vel[which] = 0.0
-        self.action[which] = 0.0
+        self._constants()
+        tilt = self.rng.uniform(-10.0, 10.0, size=(k, 2))  # degrees about z, about x
+        x, z = self.rng.uniform(-1.5, 1.5, k), self.rng.uniform(-1.5, 1.5, k)
+        fresh = np.zeros((8, k))
+        fresh[SIGMA] = np.radians(tilt.T) * AXIS_SIGN
+        fresh[X_Z] = x, z
+        fresh[Y] = 4.0
+        self.state[:, which] = fresh
+        np.maximum(np.abs(self.xz[0]), np.abs(self.xz[1]), out=self.reach)
+        self.turn[:, which] = 0.0
+        self.direction[:, which] = 0.0
         self.reward[which] = 0.0
-        self.episode_steps[which] = 0
+        self.start[which] = self.academy_steps
+        self.next_interrupt = int(self.start.min()) + MAX_STEP
 
     def _observe(self) -> np.ndarray:
-        half = np.radians(self.tilt) / 2.0
-        rotation = np.sin(half)  # quaternion z and x components for small combined tilts
-        return np.column_stack([rotation, self.pos, self.vel]).astype(np.float32)
+        rows = self.state[OBS_ROWS]
+        rows[:2] = np.sin(rows[:2] * 0.5) * AXIS_SIGN  # quaternion z and x components
+        return np.ascontiguousarray(rows.T, dtype=np.float32)
 
     def _decisions(self) -> AgentInfos:
-        infos = AgentInfos.build(self.ids, [self._observe()], reward=self.reward)
-        self.reward[:] = 0.0
+        infos = AgentInfos.build(self.ids, [self._observe()], reward=self.reward)  # copies
+        self.reward.fill(0.0)
         return infos
+
+    def _act(self, continuous: np.ndarray) -> None:
+        """Decisions are always for every agent, in id order; NaN means no turn."""
+        action = np.clip(continuous, -1.0, 1.0)
+        if np.isnan(action).any():
+            action = np.nan_to_num(action, nan=0.0)
+        np.multiply(action.T, TURN * AXIS_SIGN, out=self.turn)
+        np.sign(self.turn, out=self.direction)
 
     # --- the contract ----------------------------------------------------------------
 
@@ -96,22 +147,21 @@ class Ball3D(SimEnv):
     def step(self, actions: Mapping[str, Actions]) -> Output:
         behavior = self.behaviors[0].name
         if behavior in actions and len(actions[behavior]):
-            # Decisions are always for every agent, in id order.
-            self.action[:] = np.clip(actions[behavior].continuous, -1.0, 1.0)
+            self._act(actions[behavior].continuous)
         while True:
             self.academy_steps += 1
             fell, interrupted = self._physics_step()
-            done = fell | interrupted
             terminal = None
-            if done.any():
+            if fell is not None or interrupted is not None:
+                done = interrupted if fell is None else fell
+                done = done if interrupted is None else done | interrupted
                 terminal = AgentInfos.build(
                     self.ids[done],
                     [self._observe()[done]],
                     reward=self.reward[done],
                     done=True,
-                    max_step_reached=interrupted[done],
+                    max_step_reached=False if interrupted is None else interrupted[done],
                 )
-                self.record_stat("Ball/Fell", float(fell.sum()), StatsMethod.SUM)
                 self._begin_episodes(done)
             if self.academy_steps % DECISION_PERIOD == 0:
                 decisions = self._decisions()
@@ -120,49 +170,41 @@ class Ball3D(SimEnv):
             if terminal is not None:
                 return {behavior: terminal}
 
-    def _physics_step(self) -> tuple[np.ndarray, np.ndarray]:
-        """One FixedUpdate: act, move the ball, and judge; returns (fell, interrupted)."""
-        turn = 2.0 * self.action  # degrees this step about z, about x
-        tilt_z, tilt_x = self.tilt[:, 0], self.tilt[:, 1]
-        turn[:, 0] = np.where(
-            ((tilt_z < MAX_TILT) & (turn[:, 0] > 0)) | ((tilt_z > -MAX_TILT) & (turn[:, 0] < 0)),
-            turn[:, 0],
-            0.0,
-        )
-        turn[:, 1] = np.where(
-            ((tilt_x < MAX_TILT) & (turn[:, 1] > 0)) | ((tilt_x > -MAX_TILT) & (turn[:, 1] < 0)),
-            turn[:, 1],
-            0.0,
-        )
-        self.tilt += turn
+    def _physics_step(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """One FixedUpdate: act, move the ball, and judge; returns (fell, interrupted), each
+        None where no agent fell / no agent can have reached MaxStep (the common case)."""
+        # Turn while inside the limit in the direction of the turn (Unity's rule).
+        turn = self.turn * (self.direction * self.sigma < MAX_SIGMA)
+        self.sigma += turn
+        sin, tan = np.sin(self.sigma), np.tan(self.sigma)
 
-        radius = BALL_RADIUS * self.scale
-        sin_z, sin_x = np.sin(np.radians(self.tilt[:, 0])), np.sin(np.radians(self.tilt[:, 1]))
-        x, z = self.pos[:, 0], self.pos[:, 2]
-        over = (np.abs(x) <= HALF_WIDTH) & (np.abs(z) <= HALF_WIDTH)
-        surface = -x * np.tan(np.radians(self.tilt[:, 0])) + z * np.tan(np.radians(self.tilt[:, 1]))
-        resting = over & (self.pos[:, 1] <= surface + radius + 1e-6)
+        xz, y = self.xz, self.y
+        slope = xz * tan
+        top = slope[0] + slope[1]  # the platform's surface under the ball ...
+        top += self.radius  # ... where the ball's centre rests
+        over = self.reach <= HALF_WIDTH  # as the previous step left the ball
+        resting = over & (y - top <= RESTING_TOLERANCE)
 
-        # Free fall for balls in the air (or off the platform).
-        self.vel[:, 1] -= self.gravity * DT
-        # Rolling along the slope for balls on the platform; a tilting platform also shoves
-        # the ball, less so a heavy one.
-        shove = np.radians(turn) / DT * radius * 0.05 / self.mass
-        ax = -self.gravity * ROLLING * sin_z - shove[:, 0]
-        az = self.gravity * ROLLING * sin_x + shove[:, 1]
-        self.vel[resting, 0] += ax[resting] * DT
-        self.vel[resting, 2] += az[resting] * DT
+        # Free fall for every ball; rolling along the slope for balls on the platform, where a
+        # tilting platform also shoves the ball, less so a heavy one.
+        roll = sin * self.slope_dv
+        roll += turn * self.shove_dv
+        np.multiply(roll, resting, out=self.accel[:2])
+        self.vel += self.accel
         self.pos += self.vel * DT
-        landed = over & (self.pos[:, 1] < surface + radius)
-        self.pos[landed, 1] = (surface + radius)[landed]
-        self.vel[landed, 1] = 0.0
+        landed = over & (y < top)
+        np.copyto(y, top, where=landed)
+        np.copyto(self.v_y, 0.0, where=landed)
 
-        self.episode_steps += 1
-        fell = (
-            (self.pos[:, 1] < -2.0)
-            | (np.abs(self.pos[:, 0]) > 3.0)
-            | (np.abs(self.pos[:, 2]) > 3.0)
-        )
-        interrupted = ~fell & (self.episode_steps >= MAX_STEP)
-        self.reward[:] = np.where(fell, -1.0, 0.1)  # SetReward, not AddReward
+        reach = np.abs(xz)
+        np.maximum(reach[0], reach[1], out=self.reach)
+        fell = (self.reach > 3.0) | (y < -2.0)
+        self.reward.fill(0.1)  # SetReward, not AddReward; -1 below for balls that fell
+        interrupted = None
+        if self.academy_steps >= self.next_interrupt:
+            interrupted = ~fell & (self.academy_steps - self.start >= MAX_STEP)
+            interrupted = interrupted if np.count_nonzero(interrupted) else None
+        if not np.count_nonzero(fell):
+            return None, interrupted
+        self.reward[fell] = -1.0
         return fell, interrupted

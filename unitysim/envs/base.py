@@ -102,21 +102,25 @@ class AgentInfos:
         group_reward: np.ndarray | float = 0.0,
         action_mask: np.ndarray | None = None,
     ) -> AgentInfos:
-        """Broadcast scalars to ``n`` rows and fix dtypes once, at the boundary."""
-        ids = np.asarray(agent_id, dtype=np.int32).reshape(-1)
+        """Broadcast scalars to ``n`` rows and fix dtypes once, at the boundary.
+
+        The per-agent arrays are fresh copies (an environment may reuse its own buffers
+        right after); observations and masks are taken as they are when their dtype is
+        already right. This runs for every message, so the common cases (a scalar, or an
+        array of the right dtype and length) take the cheapest numpy call.
+        """
+        ids = np.asarray(agent_id, dtype=np.int32)
+        if ids.ndim != 1:
+            ids = ids.reshape(-1)
         n = len(ids)
-
-        def rows(value: np.ndarray | float | bool, dtype: type) -> np.ndarray:
-            return np.broadcast_to(np.asarray(value, dtype=dtype), (n,)).copy()
-
         return cls(
             agent_id=ids,
-            obs=[np.asarray(o, dtype=np.float32).reshape(n, *np.shape(o)[1:]) for o in obs],
-            reward=rows(reward, np.float32),
-            done=rows(done, np.bool_),
-            max_step_reached=rows(max_step_reached, np.bool_),
-            group_id=rows(group_id, np.int32),
-            group_reward=rows(group_reward, np.float32),
+            obs=[_observation_rows(o, n) for o in obs],
+            reward=_rows(reward, np.float32, n),
+            done=_rows(done, np.bool_, n),
+            max_step_reached=_rows(max_step_reached, np.bool_, n),
+            group_id=_rows(group_id, np.int32, n),
+            group_reward=_rows(group_reward, np.float32, n),
             action_mask=None if action_mask is None else np.asarray(action_mask, dtype=np.bool_),
         )
 
@@ -135,6 +139,23 @@ class AgentInfos:
             group_reward=np.concatenate([p.group_reward for p in parts]),
             action_mask=None if any(m is None for m in masks) else np.concatenate(masks),
         )
+
+
+def _rows(value: np.ndarray | float | bool, dtype: type, n: int) -> np.ndarray:
+    """``value`` as a fresh (n,) array of ``dtype``: scalars broadcast, arrays copied."""
+    if isinstance(value, np.ndarray):
+        if value.shape == (n,):
+            return value.astype(dtype)  # always a copy
+    elif isinstance(value, (bool, int, float)):
+        return np.full(n, value, dtype=dtype)
+    return np.broadcast_to(np.asarray(value, dtype=dtype), (n,)).copy()
+
+
+def _observation_rows(obs: np.ndarray, n: int) -> np.ndarray:
+    """One sensor's batch as float32 (n, *shape), without a copy when it already is one."""
+    if isinstance(obs, np.ndarray) and obs.dtype == np.float32 and obs.shape[:1] == (n,):
+        return obs
+    return np.asarray(obs, dtype=np.float32).reshape(n, *np.shape(obs)[1:])
 
 
 @dataclass(frozen=True)

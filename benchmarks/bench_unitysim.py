@@ -1,0 +1,307 @@
+"""Is the unitysim stand-in ever what limits throughput? Measure it against a raw trainer.
+
+Launches 3DBall through the real, unmodified ``mlagents_envs.UnityEnvironment`` (the stand-in
+is a separate process, as a Unity build is), runs a random-action loop, and reports the
+trainer's view (agent-steps/s, exchanges/s, round trip) next to what the stand-in costs: its
+CPU time per exchange (``psutil`` on the launched process) and that time's share of the
+round trip. The goal is a share of at most 25%: then the trainer, not the stand-in, is the
+bottleneck. Resident memory of the stand-in is sampled too (``--minutes`` for a long run):
+it must stay under 150 MB and not grow.
+
+``--reference-encoder`` also runs the stand-in with its reference (protobuf-object) encoder
+(``UNITYSIM_REFERENCE_ENCODER=1``) in the same invocation, so that both are measured on the
+same machine state and a ratio can be given. If GridWorld exists (camera PNGs on every
+step), it is launched too for a shorter run, and its per-message step and encoding costs
+are measured in-process.
+
+    .venv/bin/python benchmarks/bench_unitysim.py [--seconds 20] [--reference-encoder]
+        [--minutes 10] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import socket
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+
+from rollout import compat
+
+compat.install()
+
+from mlagents_envs.environment import UnityEnvironment  # noqa: E402
+
+from unitysim.launcher import build  # noqa: E402
+
+MB = 1024.0 * 1024.0
+RSS_LIMIT_MB = 150.0
+SHARE_GOAL = 0.25
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def machine() -> dict[str, Any]:
+    model = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "nproc": os.cpu_count(),
+        "affinity": len(os.sched_getaffinity(0)),
+        "cpu": model,
+        "python": platform.python_version(),
+        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+    }
+
+
+def _cpu(process: psutil.Process) -> float:
+    times = process.cpu_times()
+    return times.user + times.system
+
+
+def run_loop(
+    directory: Path, env_name: str, seconds: float, warmup: float, reference: bool
+) -> dict[str, Any]:
+    """One launch: warm up, then a timed random-action loop; the stand-in's costs around it."""
+    if reference:
+        os.environ["UNITYSIM_REFERENCE_ENCODER"] = "1"
+    else:
+        os.environ.pop("UNITYSIM_REFERENCE_ENCODER", None)
+    env = UnityEnvironment(
+        file_name=str(directory / env_name),
+        base_port=free_port(),
+        no_graphics=True,
+        timeout_wait=10,
+    )
+    os.environ.pop("UNITYSIM_REFERENCE_ENCODER", None)
+    try:
+        sim = psutil.Process(env._process.pid)  # the launcher execs: this is the player
+        trainer = psutil.Process()
+        env.reset()
+        names = list(env.behavior_specs)
+
+        def exchange() -> int:
+            decisions = 0
+            for name in names:
+                steps, _ = env.get_steps(name)
+                spec = env.behavior_specs[name]
+                env.set_actions(name, spec.action_spec.random_action(len(steps)))
+                decisions += len(steps)
+            env.step()
+            return decisions
+
+        end = time.perf_counter() + warmup
+        while time.perf_counter() < end:
+            exchange()
+        rss_start = sim.memory_info().rss / MB
+        rss_max = rss_start
+        rss_samples = [(0.0, rss_start)]
+        sim_cpu0, trainer_cpu0 = _cpu(sim), _cpu(trainer)
+        start = time.perf_counter()
+        end = start + seconds
+        next_sample = start + min(10.0, seconds / 4)
+        exchanges = decisions = 0
+        now = start
+        while now < end:
+            for _ in range(50):
+                decisions += exchange()
+            exchanges += 50
+            now = time.perf_counter()
+            if now >= next_sample:
+                rss = sim.memory_info().rss / MB
+                rss_max = max(rss_max, rss)
+                rss_samples.append((round(now - start, 1), round(rss, 2)))
+                next_sample = now + min(10.0, seconds / 4)
+        elapsed = now - start
+        sim_cpu, trainer_cpu = _cpu(sim) - sim_cpu0, _cpu(trainer) - trainer_cpu0
+        rss_end = sim.memory_info().rss / MB
+        rss_max = max(rss_max, rss_end)
+    finally:
+        env.close()
+    round_trip = elapsed / exchanges
+    return {
+        "env": env_name,
+        "encoder": "reference" if reference else "fast",
+        "seconds": round(elapsed, 2),
+        "exchanges": exchanges,
+        "agent_steps_per_s": round(decisions / elapsed, 1),
+        "exchanges_per_s": round(exchanges / elapsed, 1),
+        "round_trip_ms": round(1e3 * round_trip, 4),
+        "sim_cpu_ms_per_exchange": round(1e3 * sim_cpu / exchanges, 4),
+        "sim_share_of_round_trip": round(sim_cpu / exchanges / round_trip, 4),
+        "trainer_cpu_ms_per_exchange": round(1e3 * trainer_cpu / exchanges, 4),
+        "sim_rss_mb_start": round(rss_start, 2),
+        "sim_rss_mb_end": round(rss_end, 2),
+        "sim_rss_mb_max": round(rss_max, 2),
+        "rss_samples": rss_samples,
+    }
+
+
+def gridworld_available() -> str | None:
+    """None if GridWorld can be played, else why not (it is written separately)."""
+    try:
+        from unitysim.envs import load
+
+        load("GridWorld")
+    except Exception as error:
+        return f"{type(error).__name__}: {error}"
+    return None
+
+
+def gridworld_png_cost(seconds: float = 2.0) -> dict[str, Any]:
+    """In-process: GridWorld steps and the encoding of their messages (PNG dominates)."""
+    from unitysim import messages, wire
+    from unitysim.envs import load
+    from unitysim.envs.base import Actions, Parameters
+
+    env_class = load("GridWorld")
+    env = env_class(np.random.default_rng(0), 1, Parameters())
+    behaviors = {b.name: b for b in env_class.behaviors}
+    behavior = env_class.behaviors[0]
+    rng = np.random.default_rng(1)
+    output = env.reset()
+    results: dict[str, Any] = {"agents": len(next(iter(output.values())))}
+    encoders = {
+        "fast": wire.encode_rl_output,
+        "reference": lambda b, o, a: messages.rl_output(b, o, a).SerializeToString(),
+    }
+    for label, encode in encoders.items():
+        count = 0
+        step_s = encode_s = 0.0
+        size = 0
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            n = len(output[behavior.name]) - int(output[behavior.name].done.sum())
+            actions = {
+                behavior.name: Actions(
+                    np.zeros((n, 0), np.float32),
+                    rng.integers(0, 5, size=(n, 1)).astype(np.int32),
+                )
+            }
+            t0 = time.perf_counter()
+            output = env.step(actions)
+            t1 = time.perf_counter()
+            size += len(encode(behaviors, output, []))
+            t2 = time.perf_counter()
+            step_s += t1 - t0
+            encode_s += t2 - t1
+            count += 1
+        results[label] = {
+            "step_ms": round(1e3 * step_s / count, 4),
+            "encode_ms": round(1e3 * encode_s / count, 4),
+            "message_bytes": size // count,
+        }
+    return results
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    head = (
+        "| env | encoder | agent-steps/s | exchanges/s | round trip ms | stand-in CPU ms/exch "
+        "| share | trainer CPU ms/exch | RSS start MB | RSS end MB | RSS max MB |"
+    )
+    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['env']} | {r['encoder']} | {r['agent_steps_per_s']:,.0f} "
+            f"| {r['exchanges_per_s']:,.0f} | {r['round_trip_ms']:.3f} "
+            f"| {r['sim_cpu_ms_per_exchange']:.3f} | {100 * r['sim_share_of_round_trip']:.0f}% "
+            f"| {r['trainer_cpu_ms_per_exchange']:.3f} | {r['sim_rss_mb_start']:.1f} "
+            f"| {r['sim_rss_mb_end']:.1f} | {r['sim_rss_mb_max']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=20.0, help="timed loop length")
+    parser.add_argument("--minutes", type=float, help="long run (memory); overrides --seconds")
+    parser.add_argument("--warmup", type=float, default=3.0, help="untimed seconds first")
+    parser.add_argument("--env", default="3DBall", help="environment to launch")
+    parser.add_argument(
+        "--reference-encoder",
+        action="store_true",
+        help="also run with the reference protobuf-object encoder and report the ratio",
+    )
+    parser.add_argument("--no-gridworld", action="store_true", help="skip the PNG cost")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args(argv)
+    seconds = 60.0 * args.minutes if args.minutes else args.seconds
+
+    info = machine()
+    print(
+        f"# unitysim benchmark, {info['date']}: {info['nproc']} CPUs "
+        f"({info['affinity']} usable), {info['cpu']}, Python {info['python']}"
+    )
+    grid_missing = "skipped (--no-gridworld)" if args.no_gridworld else gridworld_available()
+    envs = [args.env] + ([] if grid_missing or args.env == "GridWorld" else ["GridWorld"])
+    variants = [False, True] if args.reference_encoder else [False]
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-unitysim-") as tmp:
+        directory = Path(tmp)
+        build(directory, envs)
+        for env_name in envs:
+            length = seconds if env_name == args.env else min(seconds, 10.0)
+            for reference in variants:
+                rows.append(run_loop(directory, env_name, length, args.warmup, reference))
+    print(table(rows))
+    result: dict[str, Any] = {"machine": info, "runs": rows}
+    fast = rows[0]
+    if args.reference_encoder:
+        result["ratio_fast_over_reference"] = {}
+        for fast_row, ref_row in zip(rows[::2], rows[1::2], strict=True):
+            ratio = {
+                "agent_steps_per_s": round(
+                    fast_row["agent_steps_per_s"] / ref_row["agent_steps_per_s"], 3
+                ),
+                "sim_cpu_ms_per_exchange": round(
+                    fast_row["sim_cpu_ms_per_exchange"] / ref_row["sim_cpu_ms_per_exchange"], 3
+                ),
+            }
+            result["ratio_fast_over_reference"][fast_row["env"]] = ratio
+            print(f"\n{fast_row['env']}: fast / reference encoder: {ratio}")
+    growth = fast["sim_rss_mb_end"] - fast["sim_rss_mb_start"]
+    verdict = {
+        "share_ok": fast["sim_share_of_round_trip"] <= SHARE_GOAL,
+        "rss_ok": fast["sim_rss_mb_max"] < RSS_LIMIT_MB,
+        "rss_growth_mb": round(growth, 2),
+    }
+    result["verdict"] = verdict
+    print(
+        f"\nstand-in share {100 * fast['sim_share_of_round_trip']:.0f}% "
+        f"(goal <= {100 * SHARE_GOAL:.0f}%): {'ok' if verdict['share_ok'] else 'OVER'}; "
+        f"RSS max {fast['sim_rss_mb_max']:.1f} MB (limit {RSS_LIMIT_MB:.0f}), "
+        f"growth {growth:+.2f} MB over {fast['seconds']:.0f} s"
+    )
+    if grid_missing:
+        result["gridworld_png"] = {"skipped": grid_missing}
+        print(f"\nGridWorld: {grid_missing}")
+    else:
+        grid = gridworld_png_cost()
+        result["gridworld_png"] = grid
+        print(f"\nGridWorld messages, in-process (one area): {json.dumps(grid)}")
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
