@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import ray
 from ray.exceptions import RayActorError
 
+from rollout import keys
 from rollout.collector import ActorFactory, CollectorMetrics
 from rollout.ports import PortRange
 from rollout.unity import UnityConfig
@@ -170,8 +171,6 @@ class RolloutService:
                 self._weights_ref = self.learner.weights.remote()
 
     def _observe(self, segments: list) -> None:
-        from rollout import keys
-
         for segment in segments:
             self.metrics.segments += 1
             valid = segment[keys.VALID]
