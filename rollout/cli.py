@@ -10,7 +10,6 @@ import argparse
 import sys
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
 
 Command = Callable[[argparse.Namespace], int]
 
@@ -75,7 +74,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
                 metrics = service.run(seconds=min(5.0, deadline - time.monotonic()))
                 rate = metrics.agent_steps / max(metrics.seconds, 1e-9)
                 returns = ", ".join(
-                    f"{name}: {mean:.2f}" for name, mean in _mean_returns(metrics).items()
+                    f"{name}: {mean:.2f}" for name, mean in metrics.mean_returns().items()
                 )
                 console.print(
                     f"{metrics.seconds:6.1f}s  agent steps {metrics.agent_steps:>8}  "
@@ -86,16 +85,6 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     finally:
         ray.shutdown()
     return 0
-
-
-def _mean_returns(metrics: Any) -> dict[str, float]:
-    totals: dict[str, list[float]] = {}
-    for worker in metrics.workers:
-        for name, stats in worker.behaviors.items():
-            entry = totals.setdefault(name, [0.0, 0.0])
-            entry[0] += stats.return_sum
-            entry[1] += stats.episodes
-    return {name: total / count for name, (total, count) in totals.items() if count}
 
 
 def _cmd_unitysim(args: argparse.Namespace) -> int:

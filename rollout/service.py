@@ -63,6 +63,16 @@ class ServiceMetrics:
     def policy_lag_mean(self) -> float:
         return self.policy_lag_sum / max(self.policy_lag_count, 1)
 
+    def mean_returns(self) -> dict[str, float]:
+        """Mean episode return per behavior, over every worker's finished episodes."""
+        totals: dict[str, list[float]] = {}
+        for worker in self.workers:
+            for name, stats in worker.behaviors.items():
+                entry = totals.setdefault(name, [0.0, 0.0])
+                entry[0] += stats.return_sum
+                entry[1] += stats.episodes
+        return {name: total / count for name, (total, count) in totals.items() if count}
+
 
 class RolloutService:
     def __init__(
