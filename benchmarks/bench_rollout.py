@@ -18,13 +18,12 @@ import rollout.compat  # noqa: F401  (first: makes mlagents-envs import on moder
 
 import argparse
 import json
-import os
-import platform
 import tempfile
 import time
 from pathlib import Path
 
 import torch
+from machine import machine  # benchmarks/machine.py
 from mlagents_envs.environment import UnityEnvironment
 
 from learners.policies import actor_factory
@@ -32,18 +31,6 @@ from rollout.collector import Collector
 from rollout.ports import PortAllocator
 from rollout.unity import UnityConfig
 from unitysim.launcher import build
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{os.cpu_count()} cores, {cpu}, Python {platform.python_version()}"
 
 
 def raw_loop(path: str, port: int, seconds: float) -> float:
@@ -166,7 +153,7 @@ def main() -> None:
     path = str(builds / args.env)
     registry = str(builds / "ports")
     allocator = PortAllocator(registry_dir=registry)
-    results: dict = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "env": args.env}
+    results: dict = {"machine": machine(), "env": args.env}
 
     port = allocator.lease()
     results["a_raw_agent_steps_per_s"] = raw_loop(path, port, args.seconds)
@@ -196,7 +183,8 @@ def main() -> None:
 
     print(json.dumps(results, indent=2))
     print(
-        f"\n| {results['date']} | {args.env} | raw {results['a_raw_agent_steps_per_s']:.0f} | "
+        f"\n| {results['machine']['date'][:10]} | {args.env} | "
+        f"raw {results['a_raw_agent_steps_per_s']:.0f} | "
         f"torchrl {results['b_torchrl_agent_steps_per_s']:.0f} | ours {c:.0f} | "
         f"c/a {results['c_over_a']:.2f} | c/b {results['c_over_b']:.1f} | "
         f"2w/1w {results['scaling_2_over_1']:.2f} |"

@@ -21,10 +21,8 @@ are measured in-process.
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import socket
 import sys
 import tempfile
@@ -39,6 +37,7 @@ from rollout import compat
 
 compat.install()
 
+from machine import machine  # noqa: E402  (benchmarks/machine.py)
 from mlagents_envs.environment import UnityEnvironment  # noqa: E402
 
 from unitysim.launcher import build  # noqa: E402
@@ -52,24 +51,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
-
-
-def machine() -> dict[str, Any]:
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "nproc": os.cpu_count(),
-        "affinity": len(os.sched_getaffinity(0)),
-        "cpu": model,
-        "python": platform.python_version(),
-        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-    }
 
 
 def _cpu(process: psutil.Process) -> float:
