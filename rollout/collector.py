@@ -30,11 +30,13 @@ log = logging.getLogger(__name__)
 
 
 class Actor(Protocol):
-    """What a worker needs of a policy (``learners.policies.ActorCritic`` is one)."""
+    """What a worker needs of a policy (``learners.policies.RolloutActor`` is one): numpy
+    observations per sensor and an allowed-mask in; continuous [n, c], discrete
+    [n, branches] and log-probabilities [n] out."""
 
     def act(
-        self, obs: dict[str, torch.Tensor], mask: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+        self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
     def load_state_dict(self, state: Mapping[str, Any]) -> Any: ...
 
@@ -156,23 +158,17 @@ class Collector:
         return builder
 
     def _act(self, behavior: str, spec: BehaviorSpec, decisions: Any) -> Decisions:
-        obs = {
-            o.name: torch.from_numpy(values)
-            for o, values in zip(spec.observation_specs, decisions.obs, strict=True)
-        }
+        obs = {o.name: v for o, v in zip(spec.observation_specs, decisions.obs, strict=True)}
         branches = spec.action_spec.discrete_branches
-        mask = torch.from_numpy(allowed_mask(decisions, sum(branches))) if branches else None
+        mask = allowed_mask(decisions, sum(branches)) if branches else None
         continuous, discrete, log_prob = self.actors[behavior].act(obs, mask)
-        continuous_np = continuous.numpy().astype(np.float32, copy=False)
-        discrete_np = discrete.numpy()
         self.unity.set_actions(
             behavior,
             ActionTuple(
-                continuous=np.clip(continuous_np, -1.0, 1.0),
-                discrete=discrete_np.astype(np.int32),
+                continuous=np.clip(continuous, -1.0, 1.0), discrete=discrete.astype(np.int32)
             ),
         )
-        return Decisions(continuous_np, discrete_np, log_prob.numpy().astype(np.float32))
+        return Decisions(continuous, discrete, log_prob)
 
     def _recover(self, error: BaseException) -> None:
         """The player failed: drop partial rows (never sent), restart on a fresh port."""
