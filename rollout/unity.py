@@ -29,6 +29,10 @@ from pathlib import Path
 import grpc
 from mlagents_envs import env_utils
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps, TerminalSteps
+from mlagents_envs.communicator_objects.agent_action_pb2 import AgentActionProto
+from mlagents_envs.communicator_objects.command_pb2 import STEP
+from mlagents_envs.communicator_objects.unity_input_pb2 import UnityInputProto
+from mlagents_envs.communicator_objects.unity_rl_input_pb2 import UnityRLInputProto
 from mlagents_envs.communicator_objects.unity_to_external_pb2_grpc import (
     add_UnityToExternalProtoServicer_to_server,
 )
@@ -260,6 +264,26 @@ class GuardedUnityEnvironment(UnityEnvironment):
     @property
     def player_pid(self) -> int | None:
         return self._process.pid if self._process is not None else None
+
+    def _generate_step_input(self, vector_action: dict[str, ActionTuple]) -> UnityInputProto:
+        """mlagents' step input, the same message built with one constructor call per agent
+        instead of six ``extend`` calls (tested equal to the original)."""
+        rl_in = UnityRLInputProto()
+        for behavior, actions in vector_action.items():
+            n_agents = len(self._env_state[behavior][0])
+            if n_agents == 0:
+                continue
+            continuous = actions.continuous.tolist()
+            discrete = actions.discrete.tolist()
+            rl_in.agent_actions[behavior].value.extend(
+                AgentActionProto(
+                    vector_actions_deprecated=c + d, continuous_actions=c, discrete_actions=d
+                )
+                for c, d in zip(continuous[:n_agents], discrete[:n_agents], strict=True)
+            )
+            rl_in.command = STEP
+        rl_in.side_channel = bytes(self._side_channel_manager.generate_side_channel_messages())
+        return self._wrap_unity_input(rl_in)
 
 
 # --- the restartable instance ------------------------------------------------------------

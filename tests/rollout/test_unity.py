@@ -151,3 +151,31 @@ def test_stats_are_forwarded(allocator):
         stats = unity.drain_stats()
     assert stats["Echo/Episodes Ended"] and all(m == 2 for _, m in stats["Echo/Episodes Ended"])
     assert np.sum([v for v, _ in stats["Echo/Episodes Ended"]]) > 0
+
+
+def test_fast_step_input_equals_mlagents_original():
+    """GuardedUnityEnvironment._generate_step_input builds exactly mlagents' message."""
+    from mlagents_envs.base_env import ActionTuple
+    from mlagents_envs.environment import UnityEnvironment
+    from mlagents_envs.side_channel.side_channel_manager import SideChannelManager
+
+    from rollout.unity import GuardedUnityEnvironment
+
+    rng = np.random.default_rng(0)
+    env = object.__new__(GuardedUnityEnvironment)
+    env._env_state = {"A?team=0": ([0] * 5, []), "B?team=0": ([0] * 3, []), "C?team=0": ([], [])}
+    env._side_channel_manager = SideChannelManager([])
+    actions = {
+        "A?team=0": ActionTuple(continuous=rng.normal(size=(5, 2)).astype(np.float32)),
+        "B?team=0": ActionTuple(
+            continuous=rng.normal(size=(3, 1)).astype(np.float32),
+            discrete=rng.integers(0, 3, size=(3, 2)).astype(np.int32),
+        ),
+        "C?team=0": ActionTuple(discrete=np.zeros((0, 1), np.int32)),
+    }
+    original = UnityEnvironment._generate_step_input(env, actions)
+    fast = env._generate_step_input(actions)
+    assert fast == original
+    assert fast.SerializeToString(deterministic=True) == original.SerializeToString(
+        deterministic=True
+    )
