@@ -39,6 +39,7 @@ from mlagents_envs.communicator_objects.unity_to_external_pb2_grpc import (
 from mlagents_envs.environment import UnityEnvironment
 from mlagents_envs.exception import (
     UnityCommunicationException,
+    UnityCommunicatorStoppedException,
     UnityEnvironmentException,
     UnityTimeOutException,
     UnityWorkerInUseException,
@@ -63,8 +64,10 @@ UNITYSIM_PREFIX = "unitysim:"
 EDITOR_PORT = UnityEnvironment.DEFAULT_EDITOR_PORT
 _PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
-#: Failures a restart can cure: the player died, hung, sent status != 200 or NaNs.
+#: Failures a restart can cure: the player died (also after an oversized message), hung,
+#: sent status != 200 or NaNs.
 RECOVERABLE = (
+    UnityCommunicatorStoppedException,  # status != 200
     UnityEnvironmentException,
     UnityTimeOutException,
     UnityCommunicationException,

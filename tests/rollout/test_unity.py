@@ -179,3 +179,60 @@ def test_fast_step_input_equals_mlagents_original():
     assert fast.SerializeToString(deterministic=True) == original.SerializeToString(
         deterministic=True
     )
+
+
+@pytest.mark.parametrize(
+    ("flags", "timeout_wait"),
+    [
+        (("--sim-crash-after", "3"), 20),
+        (("--sim-status-after", "3"), 20),
+        (("--sim-oversize-after", "3"), 20),
+        (("--sim-nan-after", "3"), 20),
+        (("--sim-hang-after", "3"), 2),
+    ],
+    ids=["exit", "status-500", "oversized", "nan", "hang"],
+)
+def test_each_failure_restarts_on_a_fresh_port_until_the_budget_is_spent(
+    allocator, flags, timeout_wait
+):
+    """The fault repeats in every restarted player, so the budget runs out."""
+    from learners.policies import actor_factory
+    from rollout.collector import Collector
+
+    config = UnityConfig(
+        "unitysim:3DBall",
+        additional_args=flags,
+        timeout_wait=timeout_wait,
+        max_restarts=2,
+        backoff_s=0.0,
+    )
+    collector = Collector(config, actor_factory, horizon=4, allocator=allocator)
+    try:
+        with pytest.raises(UnityError, match="restart budget of 2 spent"):
+            for _ in range(50):
+                collector.collect()
+        assert collector.snapshot().restarts == 2
+        # The first player and both restarts each ran on their own port, now quarantined.
+        assert len(allocator.quarantined()) == 3
+    finally:
+        collector.close()
+
+
+def test_editor_mode_leases_5004_and_plays(allocator):
+    editor = subprocess.Popen(
+        [sys.executable, "-m", "unitysim", "editor", "--env", "3DBall"],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        with UnityInstance(UnityConfig(None), allocator) as unity:
+            assert unity.port == 5004 and unity.player_pid is None
+            unity.reset()
+            unity.step()
+            assert len(unity.get_steps(BALL)[0]) == 12
+        assert editor.wait(timeout=15) == 0  # the editor session ends with the trainer
+    finally:
+        if editor.poll() is None:
+            editor.kill()
+            editor.wait()
