@@ -107,7 +107,7 @@ def service_run(build_name: str, workers: int, seconds: float, registry: str) ->
     from rollout.service import RolloutService, ServiceConfig
     from rollout.testing import CountingLearner
 
-    learner = ray.remote(CountingLearner).options(num_cpus=0).remote(actor_factory, bump_every=4)
+    learner = ray.remote(CountingLearner).options(num_cpus=0).remote(bump_every=4)
     config = ServiceConfig(
         UnityConfig(build_name),
         num_workers=workers,

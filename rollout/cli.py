@@ -59,7 +59,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     else:
         ray.init(num_cpus=args.cpus, include_dashboard=False, log_to_driver=False)
     try:
-        learner = ray.remote(CountingLearner).options(num_cpus=0).remote(actor_factory)
+        learner = ray.remote(CountingLearner).options(num_cpus=0).remote()
         config = ServiceConfig(
             UnityConfig(build, seed=args.seed),
             num_workers=args.workers,

@@ -1,31 +1,29 @@
 """A minimal learner stand-in for tests and benchmarks of the rollout side.
 
-It consumes segments (checking them against the behavior's spec), counts what it got,
-and publishes a new weights version every ``bump_every`` submissions: the weights are
-the initial ones shifted by the version, so tests can see them reach the workers.
+It consumes segments, counts what it got (steps, rows, bytes, the policy versions that
+acted), and publishes a new weights version every ``bump_every`` submissions. The
+weights themselves are empty: workers keep their own and stamp the newer version, so
+tests and benchmarks can see versions reach the workers and measure policy lag.
 """
 
 from __future__ import annotations
 
 from collections import Counter
 
-import torch
 from tensordict import TensorDict
 
 from rollout import keys
-from rollout.collector import ActorFactory, Weights
+from rollout.collector import Weights
 
 
 class CountingLearner:
-    def __init__(self, actor_factory: ActorFactory, bump_every: int = 2) -> None:
-        self.actor_factory = actor_factory
+    def __init__(self, bump_every: int = 2) -> None:
         self.bump_every = bump_every
         self.version = 0
         self.submissions = 0
         self.valid_steps: Counter[str] = Counter()
         self.rows: Counter[str] = Counter()
         self.bytes = 0
-        self._initial: Weights = {}
         self.versions_seen: Counter[int] = Counter()
 
     def submit(self, segments: list[TensorDict]) -> int:
@@ -40,15 +38,8 @@ class CountingLearner:
             self.version += 1
         return self.version
 
-    def register(self, behavior: str, state: dict[str, torch.Tensor]) -> None:
-        self._initial[behavior] = state
-
     def weights(self) -> tuple[int, Weights]:
-        shifted = {
-            behavior: {name: value + self.version for name, value in state.items()}
-            for behavior, state in self._initial.items()
-        }
-        return self.version, shifted
+        return self.version, {}
 
     def summary(self) -> dict:
         return {

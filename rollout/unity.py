@@ -12,6 +12,7 @@ after a SIGKILL. The same code drives real builds, unitysim builds
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
 import queue
@@ -57,6 +58,7 @@ from mlagents_envs.side_channel.environment_parameters_channel import (
 from mlagents_envs.side_channel.stats_side_channel import StatsSideChannel
 
 from rollout.ports import PortAllocator
+from unitysim.launcher import write_executable
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +146,8 @@ def _guard_launcher(executable: str) -> str:
     directory = Path(tempfile.gettempdir()) / f"unity-rollout-{os.getuid()}" / "guarded"
     directory.mkdir(parents=True, exist_ok=True)
     name = Path(executable).name.replace(".x86_64", "").replace(".x86", "")
-    path = directory / f"{name}-{abs(hash(executable)):x}.x86_64"
+    digest = hashlib.sha256(executable.encode()).hexdigest()[:12]  # stable across processes
+    path = directory / f"{name}-{digest}.x86_64"
     text = (
         "#!/bin/sh\n"
         "# Ties the Unity player to its owner's life (see rollout/launch_guard.py).\n"
@@ -152,11 +155,7 @@ def _guard_launcher(executable: str) -> str:
         f"exec {shlex.quote(sys.executable)} -m rollout.launch_guard "
         f'{shlex.quote(executable)} "$@"\n'
     )
-    if not path.exists() or path.read_text() != text:
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(text)
-        tmp.chmod(0o755)
-        tmp.replace(path)
+    write_executable(path, text)
     return str(path.with_suffix(""))
 
 

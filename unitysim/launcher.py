@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import os
 import shlex
 import sys
 from collections.abc import Iterable
@@ -51,10 +52,17 @@ def build(
             root=shlex.quote(str(_PACKAGE_ROOT)),
             python=shlex.quote(python or sys.executable),
         )
-        if not path.exists() or path.read_text() != text:
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(text)
-            tmp.chmod(0o755)
-            tmp.replace(path)  # atomic: concurrent builders never see a half-written file
+        write_executable(path, text)
         paths.append(path)
     return paths
+
+
+def write_executable(path: Path, text: str) -> None:
+    """Write an executable script unless it already holds ``text``. Atomic, and safe for
+    concurrent writers (each has its own temporary file): none sees a half-written file."""
+    if path.exists() and path.read_text() == text:
+        return
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    tmp.chmod(0o755)
+    tmp.replace(path)

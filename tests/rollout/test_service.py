@@ -130,7 +130,7 @@ def test_grid_food_collector_hybrid_actions(ray_session, registry):
 
 
 def test_service_routes_segments_and_weights_and_survives_a_killed_worker(ray_session, registry):
-    learner = ray_session.remote(CountingLearner).remote(actor_factory, bump_every=2)
+    learner = ray_session.remote(CountingLearner).remote(bump_every=2)
     config = ServiceConfig(
         UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
         num_workers=2,
