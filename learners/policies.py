@@ -11,7 +11,8 @@ rollout workers get a CPU copy through ``actor_factory``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -29,13 +30,50 @@ class NetworkSettings:
 
     hidden_units: int = 128
     num_layers: int = 2
+    normalize: bool = False  # running mean/variance normalization of vector observations
+
+
+class RunningNorm(nn.Module):
+    """Running mean and variance of a vector observation, kept in buffers.
+
+    Buffers travel with the state_dict, so workers, checkpoints and the ONNX export all
+    see the statistics the learner last updated (ML-Agents normalizes the same way).
+    Only the learner calls ``update``; acting only reads.
+    """
+
+    def __init__(self, size: int, clip: float = 5.0) -> None:
+        super().__init__()
+        self.clip = clip
+        self.register_buffer("count", torch.tensor(1e-4, dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros(size))
+        self.register_buffer("var", torch.ones(size))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x - self.mean) * torch.rsqrt(self.var + 1e-8)).clamp(-self.clip, self.clip)
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """Merge a batch ``[..., size]`` into the statistics (parallel Welford)."""
+        x = x.reshape(-1, self.mean.shape[0]).to(torch.float64)
+        if not len(x):
+            return
+        n, mean, var = float(len(x)), x.mean(0), x.var(0, unbiased=False)
+        count = float(self.count)
+        total = count + n
+        delta = mean - self.mean.double()
+        new_mean = self.mean.double() + delta * n / total
+        m2 = self.var.double() * count + var * n + delta.square() * count * n / total
+        self.mean.copy_(new_mean.float())
+        self.var.copy_((m2 / total).float())
+        self.count.fill_(total)
 
 
 class SensorEncoder(nn.Module):
     """Vectors pass through flattened; images ``[C, H, W]`` go through a small CNN."""
 
-    def __init__(self, shape: tuple[int, ...]) -> None:
+    def __init__(self, shape: tuple[int, ...], normalize: bool = False) -> None:
         super().__init__()
+        self.norm: RunningNorm | None = None
         if len(shape) == 3:
             channels, height, width = shape
             self.net: nn.Module = nn.Sequential(
@@ -50,8 +88,12 @@ class SensorEncoder(nn.Module):
         else:
             self.net = nn.Flatten(start_dim=-len(shape)) if len(shape) > 1 else nn.Identity()
             self.size = math.prod(shape)
+            if normalize:
+                self.norm = RunningNorm(self.size)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.norm is not None:
+            return self.norm(self.net(x))
         if x.dim() > 4:  # [B, T, C, H, W]: fold the time axis for the convolutions
             lead = x.shape[:-3]
             return self.net(x.reshape(-1, *x.shape[-3:])).reshape(*lead, -1)
@@ -62,8 +104,11 @@ class ActorCritic(nn.Module):
     def __init__(self, spec: BehaviorSpec, settings: NetworkSettings | None = None) -> None:
         super().__init__()
         settings = settings or NetworkSettings()
+        self.spec, self.settings = spec, settings
         self.sensor_names = [o.name for o in spec.observation_specs]
-        self.encoders = nn.ModuleList(SensorEncoder(o.shape) for o in spec.observation_specs)
+        self.encoders = nn.ModuleList(
+            SensorEncoder(o.shape, settings.normalize) for o in spec.observation_specs
+        )
         width = sum(e.size for e in self.encoders)
         layers: list[nn.Module] = []
         for _ in range(settings.num_layers):
@@ -76,6 +121,12 @@ class ActorCritic(nn.Module):
         self.log_std = nn.Parameter(torch.zeros(self.continuous)) if self.continuous else None
         self.logits = nn.Linear(width, sum(self.branches)) if self.branches else None
         self.value = nn.Linear(width, 1)
+
+    def update_normalization(self, obs: dict[str, torch.Tensor]) -> None:
+        """Fold observations the learner trains on into the running statistics."""
+        for name, encoder in zip(self.sensor_names, self.encoders, strict=True):
+            if encoder.norm is not None:
+                encoder.norm.update(encoder.net(obs[name]))
 
     def features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         parts = [enc(obs[name]) for name, enc in zip(self.sensor_names, self.encoders, strict=True)]
@@ -197,6 +248,16 @@ class RolloutActor:
             weight = linear.weight.detach().numpy().T.astype(np.float32)
             return np.ascontiguousarray(weight), linear.bias.detach().numpy().astype(np.float32)
 
+        self._norms = [
+            (
+                e.norm.mean.numpy().astype(np.float32),
+                (1.0 / np.sqrt(e.norm.var.numpy() + 1e-8)).astype(np.float32),
+                e.norm.clip,
+            )
+            if e.norm is not None
+            else None
+            for e in net.encoders
+        ]
         self._layers = [numpy(m) for m in net.trunk if isinstance(m, nn.Linear)]
         self._mean = numpy(net.mean) if net.mean is not None else None
         self._logits = numpy(net.logits) if net.logits is not None else None
@@ -215,7 +276,13 @@ class RolloutActor:
             return continuous.numpy(), discrete.numpy(), log_prob.numpy()
         net = self.network
         n = len(next(iter(obs.values())))
-        hidden = np.concatenate([obs[name].reshape(n, -1) for name in net.sensor_names], axis=1)
+        parts = []
+        for name, norm in zip(net.sensor_names, self._norms, strict=True):
+            part = obs[name].reshape(n, -1)
+            if norm is not None:
+                part = np.clip((part - norm[0]) * norm[1], -norm[2], norm[2])
+            parts.append(part)
+        hidden = np.concatenate(parts, axis=1)
         for weight, bias in self._layers:
             hidden = np.tanh(hidden @ weight + bias)
         log_prob = np.zeros(n, np.float32)
@@ -244,6 +311,27 @@ class RolloutActor:
         return continuous.astype(np.float32), discrete, log_prob.astype(np.float32)
 
 
-def actor_factory(spec: BehaviorSpec) -> RolloutActor:
-    """What rollout workers call to build their CPU copy of a behavior's policy."""
-    return RolloutActor(ActorCritic(spec))
+def base_name(behavior: str) -> str:
+    """``3DBall?team=0`` -> ``3DBall``: trainer configs name behaviors without the team."""
+    return behavior.split("?", 1)[0]
+
+
+@dataclass(frozen=True)
+class PolicyFactory:
+    """Builds a behavior's network the same way on the learner and in every worker.
+
+    Picklable, so the service ships it to workers; ``settings`` is keyed by the behavior
+    name without ``?team=``, as in trainer configs.
+    """
+
+    settings: Mapping[str, NetworkSettings] = field(default_factory=dict)
+    default: NetworkSettings = NetworkSettings()
+
+    def network(self, behavior: str, spec: BehaviorSpec) -> ActorCritic:
+        return ActorCritic(spec, self.settings.get(base_name(behavior), self.default))
+
+    def __call__(self, behavior: str, spec: BehaviorSpec) -> RolloutActor:
+        return RolloutActor(self.network(behavior, spec))
+
+
+actor_factory = PolicyFactory()  # default networks: what tests and `collect` use

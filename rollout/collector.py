@@ -41,7 +41,7 @@ class Actor(Protocol):
     def load_state_dict(self, state: Mapping[str, Any]) -> Any: ...
 
 
-ActorFactory = Callable[[BehaviorSpec], Actor]
+ActorFactory = Callable[[str, BehaviorSpec], Actor]  # (behavior name, spec) -> policy
 Weights = dict[str, dict[str, torch.Tensor]]  # behavior -> state_dict
 
 
@@ -150,7 +150,7 @@ class Collector:
     def _add_behavior(self, behavior: str, spec: BehaviorSpec) -> SegmentBuilder:
         builder = SegmentBuilder(behavior, spec, self.horizon, worker=self.worker)
         self.builders[behavior] = builder
-        actor = self.actor_factory(spec)
+        actor = self.actor_factory(behavior, spec)
         if behavior in self.weights:
             actor.load_state_dict(self.weights[behavior])
         self.actors[behavior] = actor

@@ -9,7 +9,7 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
 from mlagents_envs.base_env import ObservationType as Obs
 
-from learners.policies import ActorCritic, RolloutActor
+from learners.policies import ActorCritic, NetworkSettings, RolloutActor, RunningNorm
 
 VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
 GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
@@ -36,12 +36,16 @@ def observations(spec: BehaviorSpec, n: int, seed: int = 0) -> dict[str, np.ndar
     }
 
 
+@pytest.mark.parametrize("normalize", [False, True], ids=["raw", "normalized"])
 @pytest.mark.parametrize("sensors", [(VECTOR, GRID), (VECTOR, IMAGE)], ids=["numpy", "torch"])
-def test_log_probs_agree_with_the_network(sensors):
+def test_log_probs_agree_with_the_network(sensors, normalize):
     spec = hybrid_spec(*sensors)
     torch.manual_seed(0)
-    actor = RolloutActor(ActorCritic(spec), seed=1)
+    network = ActorCritic(spec, NetworkSettings(normalize=normalize))
     obs = observations(spec, 64)
+    if normalize:  # statistics far from the identity, so a mirror that skips them fails
+        network.update_normalization({k: torch.from_numpy(v * 3 + 2) for k, v in obs.items()})
+    actor = RolloutActor(network, seed=1)
     mask = np.ones((64, 5), bool)
     mask[:, 1] = False  # branch 0, action 1 forbidden
     continuous, discrete, log_prob = actor.act(obs, mask)
@@ -87,3 +91,17 @@ def test_loading_weights_refreshes_the_numpy_mirror():
     np.testing.assert_allclose(
         log_prob, (-0.5 * continuous**2 - 0.5 * np.log(2 * np.pi)).sum(-1), rtol=1e-5
     )
+
+
+def test_running_norm_matches_the_statistics_of_everything_it_saw():
+    rng = np.random.default_rng(0)
+    chunks = [rng.normal(loc=4.0, scale=3.0, size=(n, 5)) for n in (7, 100, 1, 40)]
+    norm = RunningNorm(5)
+    for chunk in chunks:
+        norm.update(torch.from_numpy(chunk))
+    everything = np.concatenate(chunks)
+    np.testing.assert_allclose(norm.mean.numpy(), everything.mean(0), rtol=1e-4)
+    np.testing.assert_allclose(norm.var.numpy(), everything.var(0), rtol=1e-3)
+    out = norm(torch.from_numpy(everything).float())
+    assert abs(float(out.mean())) < 1e-3 and abs(float(out.std()) - 1) < 1e-2
+    assert float(norm(torch.full((1, 5), 1e6)).max()) == norm.clip

@@ -1,0 +1,108 @@
+"""Checkpoint files: everything a run needs to resume, or to export its policies.
+
+One ``torch.save`` file per checkpoint, plain data only (tensors, numbers, strings, lists
+and dicts), so ``torch.load(weights_only=True)`` reads it and a checkpoint never executes
+code. Behavior specs are stored as dicts (``spec_to_dict``), because ``BehaviorSpec`` is a
+class. Layout::
+
+    {"format": 1, "step": int, "version": int, "meta": {...},
+     "behaviors": {behavior: {"spec": dict, "network_settings": dict,
+                              "network": state_dict, "algorithm": dict}}}
+
+Writes go to a temporary file renamed into place, so a crash mid-write never leaves a
+truncated checkpoint behind the name of a good one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from mlagents_envs.base_env import (
+    ActionSpec,
+    BehaviorSpec,
+    DimensionProperty,
+    ObservationSpec,
+    ObservationType,
+)
+
+from learners.policies import ActorCritic, NetworkSettings
+
+FORMAT = 1
+
+
+def spec_to_dict(spec: BehaviorSpec) -> dict[str, Any]:
+    return {
+        "observations": [
+            {
+                "name": o.name,
+                "shape": list(o.shape),
+                "dimension_property": [int(p.value) for p in o.dimension_property],
+                "observation_type": o.observation_type.value,
+            }
+            for o in spec.observation_specs
+        ],
+        "continuous": int(spec.action_spec.continuous_size),
+        "discrete": [int(b) for b in spec.action_spec.discrete_branches],
+    }
+
+
+def spec_from_dict(data: dict[str, Any]) -> BehaviorSpec:
+    observations = [
+        ObservationSpec(
+            tuple(o["shape"]),
+            tuple(DimensionProperty(p) for p in o["dimension_property"]),
+            ObservationType(o["observation_type"]),
+            o["name"],
+        )
+        for o in data["observations"]
+    ]
+    return BehaviorSpec(observations, ActionSpec(data["continuous"], tuple(data["discrete"])))
+
+
+def save(path: str | Path, state: dict[str, Any]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    torch.save({"format": FORMAT, **state}, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if path.is_dir():
+        path = latest(path)
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a unity-rollout checkpoint (format {FORMAT})")
+    return state
+
+
+def latest(directory: str | Path) -> Path:
+    """The newest checkpoint in a run's ``checkpoints/`` directory (or the run directory)."""
+    directory = Path(directory)
+    if (directory / "checkpoints").is_dir():
+        directory = directory / "checkpoints"
+    found = sorted(directory.glob("*.pt"), key=lambda p: p.stat().st_mtime)
+    if not found:
+        raise FileNotFoundError(f"{directory}: no checkpoint (*.pt) found")
+    return found[-1]
+
+
+def networks(state: dict[str, Any]) -> dict[str, ActorCritic]:
+    """Rebuild each behavior's network with its trained weights (for export and replay)."""
+    built = {}
+    for behavior, entry in state["behaviors"].items():
+        settings = NetworkSettings(**entry["network_settings"])
+        network = ActorCritic(spec_from_dict(entry["spec"]), settings)
+        network.load_state_dict(entry["network"])
+        built[behavior] = network.eval()
+    return built
+
+
+def network_settings_dict(settings: NetworkSettings) -> dict[str, Any]:
+    return dataclasses.asdict(settings)
