@@ -21,46 +21,13 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from mlagents_envs.base_env import (
-    ActionSpec,
-    BehaviorSpec,
-    DimensionProperty,
-    ObservationSpec,
-    ObservationType,
-)
 
 from learners.policies import ActorCritic, NetworkSettings
+from rollout.specs import spec_from_dict, spec_to_dict
+
+__all__ = ["latest", "load", "networks", "save", "spec_from_dict", "spec_to_dict"]
 
 FORMAT = 1
-
-
-def spec_to_dict(spec: BehaviorSpec) -> dict[str, Any]:
-    return {
-        "observations": [
-            {
-                "name": o.name,
-                "shape": list(o.shape),
-                "dimension_property": [int(p.value) for p in o.dimension_property],
-                "observation_type": o.observation_type.value,
-            }
-            for o in spec.observation_specs
-        ],
-        "continuous": int(spec.action_spec.continuous_size),
-        "discrete": [int(b) for b in spec.action_spec.discrete_branches],
-    }
-
-
-def spec_from_dict(data: dict[str, Any]) -> BehaviorSpec:
-    observations = [
-        ObservationSpec(
-            tuple(o["shape"]),
-            tuple(DimensionProperty(p) for p in o["dimension_property"]),
-            ObservationType(o["observation_type"]),
-            o["name"],
-        )
-        for o in data["observations"]
-    ]
-    return BehaviorSpec(observations, ActionSpec(data["continuous"], tuple(data["discrete"])))
 
 
 def save(path: str | Path, state: dict[str, Any]) -> Path:

@@ -100,6 +100,14 @@ class SensorEncoder(nn.Module):
         return self.net(x)
 
 
+def _mlp(width: int, settings: NetworkSettings) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for _ in range(settings.num_layers):
+        layers += [nn.Linear(width, settings.hidden_units), nn.Tanh()]
+        width = settings.hidden_units
+    return nn.Sequential(*layers)
+
+
 class ActorCritic(nn.Module):
     def __init__(self, spec: BehaviorSpec, settings: NetworkSettings | None = None) -> None:
         super().__init__()
@@ -109,18 +117,22 @@ class ActorCritic(nn.Module):
         self.encoders = nn.ModuleList(
             SensorEncoder(o.shape, settings.normalize) for o in spec.observation_specs
         )
-        width = sum(e.size for e in self.encoders)
-        layers: list[nn.Module] = []
-        for _ in range(settings.num_layers):
-            layers += [nn.Linear(width, settings.hidden_units), nn.Tanh()]
-            width = settings.hidden_units
-        self.trunk = nn.Sequential(*layers)
+        encoded = sum(e.size for e in self.encoders)
+        # Separate policy and value trunks over shared encoders (ML-Agents' default,
+        # shared_critic: false): the value loss does not pull on the policy's features.
+        self.trunk = _mlp(encoded, settings)
+        self.critic_trunk = _mlp(encoded, settings)
+        width = settings.hidden_units if settings.num_layers else encoded
         self.continuous = spec.action_spec.continuous_size
         self.branches = tuple(spec.action_spec.discrete_branches)
         self.mean = nn.Linear(width, self.continuous) if self.continuous else None
         self.log_std = nn.Parameter(torch.zeros(self.continuous)) if self.continuous else None
         self.logits = nn.Linear(width, sum(self.branches)) if self.branches else None
         self.value = nn.Linear(width, 1)
+        for head in (self.mean, self.logits):  # near-uniform first policy: small output layer
+            if head is not None:
+                nn.init.orthogonal_(head.weight, gain=0.01)
+                nn.init.zeros_(head.bias)
 
     def update_normalization(self, obs: dict[str, torch.Tensor]) -> None:
         """Fold observations the learner trains on into the running statistics."""
@@ -128,9 +140,16 @@ class ActorCritic(nn.Module):
             if encoder.norm is not None:
                 encoder.norm.update(encoder.net(obs[name]))
 
-    def features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+    def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         parts = [enc(obs[name]) for name, enc in zip(self.sensor_names, self.encoders, strict=True)]
-        return self.trunk(torch.cat(parts, dim=-1))
+        return torch.cat(parts, dim=-1)
+
+    def features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.trunk(self.encode(obs))
+
+    def state_value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """V(obs) with the batch dims kept (no trailing 1)."""
+        return self.value(self.critic_trunk(self.encode(obs))).squeeze(-1)
 
     def distributions(
         self, hidden: torch.Tensor, mask: torch.Tensor | None
@@ -212,7 +231,7 @@ class ActorCritic(nn.Module):
             assert discrete is not None
             log_prob = log_prob + dist.log_prob(discrete[..., index])
             entropy = entropy + dist.entropy()
-        return log_prob, entropy, self.value(hidden).squeeze(-1)
+        return log_prob, entropy, self.state_value(obs)
 
 
 class RolloutActor:

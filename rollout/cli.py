@@ -37,6 +37,51 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
+    import logging
+
+    from rich.console import Console
+
+    from rollout.train import TrainingError, TrainOptions, train
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    console = Console(stderr=True)
+    options = TrainOptions(
+        env=args.env,
+        workers=args.workers,
+        config=args.config,
+        run_id=args.run_id,
+        results_dir=args.results_dir,
+        seed=args.seed,
+        resume=args.resume,
+        force=args.force,
+        max_steps=args.max_steps,
+        max_seconds=args.max_seconds,
+        cpus=args.cpus,
+        address=args.address,
+        progress=not args.no_progress,
+        num_areas=args.num_areas,
+    )
+    try:
+        result = train(options)
+    except TrainingError as error:
+        console.print(f"[red]error:[/red] {error}", soft_wrap=True)
+        return 2
+    rewards = ", ".join(
+        f"{name}: {v['mean_reward']:.3f}"
+        for name, v in result.latest.items()
+        if v.get("mean_reward") is not None
+    )
+    how = f"stopped by {'SIGINT/SIGTERM'}" if result.interrupted else "finished"
+    console.print(
+        f"{how}: {sum(result.steps.values()):,} steps in {result.seconds:.0f}s, "
+        f"mean reward {rewards or '-'}; checkpoint {result.checkpoint}",
+        soft_wrap=True,
+    )
+    return 0
+
+
 def _cmd_collect(args: argparse.Namespace) -> int:
     """Collect with N workers into a counting learner: a pipeline check without training."""
     import ray
@@ -87,6 +132,23 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    """Export a checkpoint's policies to ONNX files for Unity (one per behavior)."""
+    import pickle
+
+    from learners.export import export_checkpoint
+
+    try:
+        written = export_checkpoint(args.source, args.out)
+    except (OSError, ValueError, RuntimeError, KeyError, pickle.UnpicklingError) as error:
+        message = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        print(f"error: cannot export {args.source}: {message}", file=sys.stderr)
+        return 2
+    for path in written:
+        print(path)
+    return 0
+
+
 def _cmd_unitysim(args: argparse.Namespace) -> int:
     from unitysim.__main__ import main as unitysim_main
 
@@ -102,6 +164,29 @@ def build_parser() -> argparse.ArgumentParser:
     doctor = commands.add_parser("doctor", help="check that mlagents-envs imports here")
     doctor.set_defaults(func=_cmd_doctor)
 
+    train = commands.add_parser(
+        "train", help="train on a Unity environment (default: unitysim 3DBall, PPO, local mode)"
+    )
+    train.add_argument(
+        "--env", default="unitysim:3DBall", help="unitysim:<Env>, a build path, or 'editor'"
+    )
+    train.add_argument("--workers", type=int, default=2, help="Ray workers, one Unity each")
+    train.add_argument(
+        "--config", help="ML-Agents trainer config YAML (default: config/<Env>.yaml if present)"
+    )
+    train.add_argument("--run-id", default="run", help="results go to RESULTS_DIR/RUN_ID")
+    train.add_argument("--results-dir", default="results")
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
+    train.add_argument("--force", action="store_true", help="overwrite an existing run")
+    train.add_argument("--max-steps", type=int, help="override every behavior's max_steps")
+    train.add_argument("--max-seconds", type=float, help="stop (with a checkpoint) after this")
+    train.add_argument("--num-areas", type=int, default=1, help="training areas per Unity")
+    train.add_argument("--cpus", type=int, default=2, help="local mode: ray.init(num_cpus)")
+    train.add_argument("--address", help="join an existing Ray cluster (e.g. auto in a job)")
+    train.add_argument("--no-progress", action="store_true", help="no live display")
+    train.set_defaults(func=_cmd_train)
+
     collect = commands.add_parser(
         "collect", help="collect with Ray workers into a counting learner (no training)"
     )
@@ -115,6 +200,15 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--cpus", type=int, default=2, help="local mode: ray.init(num_cpus)")
     collect.add_argument("--address", help="an existing Ray cluster (e.g. auto)")
     collect.set_defaults(func=_cmd_collect)
+
+    export = commands.add_parser(
+        "export", help="export a checkpoint's policies to ONNX for Unity (Sentis)"
+    )
+    export.add_argument("source", help="a checkpoint (.pt) or a run directory")
+    export.add_argument(
+        "--out", help="output directory (default: <run>/exported or the checkpoint's directory)"
+    )
+    export.set_defaults(func=_cmd_export)
 
     unitysim = commands.add_parser(
         "unitysim", help="the headless Unity stand-in (build, list, play, editor)"

@@ -29,3 +29,5 @@ TRUNCATED = "truncated"  # ("next", TRUNCATED): interrupted (MaxStep) or cut: bo
 WORKER = "worker"  # int64: index of the worker that collected the row
 ENV_STEPS = "env_steps"  # int64: the worker's environment exchanges when the row was emitted
 BEHAVIOR = "behavior"  # non-tensor str: the fully qualified behavior name
+SPEC = "behavior_spec"  # non-tensor dict: specs.spec_to_dict(BehaviorSpec), for the learner
+METADATA = (BEHAVIOR, SPEC)  # the non-tensor entries; exclude them before tensor maths

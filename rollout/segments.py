@@ -23,7 +23,7 @@ import torch
 from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
 from tensordict import TensorDict
 
-from rollout import keys
+from rollout import keys, specs
 
 INITIAL_SLOTS = 16
 STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
@@ -63,6 +63,7 @@ class SegmentBuilder:
     ) -> None:
         self.behavior = behavior
         self.spec = spec
+        self._spec_dict = specs.spec_to_dict(spec)  # travels with each segment to the learner
         self.horizon = horizon
         self.worker = worker
         self.gone_after = gone_after or horizon
@@ -304,6 +305,7 @@ class SegmentBuilder:
             data[keys.ACTION_MASK] = torch.from_numpy(f["mask"][slots].copy())
         batch = TensorDict(data, batch_size=[n, t])
         batch.set_non_tensor(keys.BEHAVIOR, self.behavior)
+        batch.set_non_tensor(keys.SPEC, self._spec_dict)
         self.counters.rows += n
         return batch
 

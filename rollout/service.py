@@ -31,6 +31,10 @@ from rollout.worker import RolloutWorker
 log = logging.getLogger(__name__)
 
 
+class RolloutError(RuntimeError):
+    """Collection cannot go on (a worker keeps failing); the message names the cause."""
+
+
 @dataclass(frozen=True)
 class ServiceConfig:
     unity: UnityConfig
@@ -91,6 +95,7 @@ class RolloutService:
         self._worker_version: list[int] = []
         self._collects: dict[ray.ObjectRef, int] = {}  # collect ref -> worker index
         self._submits: list[ray.ObjectRef] = []
+        self._failures: list[int] = []  # consecutive failed collects per worker
         self._started = 0.0
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -112,8 +117,12 @@ class RolloutService:
 
     def start(self) -> None:
         self._started = time.perf_counter()
+        # A resumed learner already has trained weights: workers start from them.
+        self._weights_ref = self.learner.weights.remote()
+        self._version = int(ray.get(self._weights_ref)[0])
         self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
         self._worker_version = [0] * len(self.workers)
+        self._failures = [0] * len(self.workers)
         for index in range(len(self.workers)):
             for _ in range(self.config.collects_per_worker):
                 self._issue(index)
@@ -158,10 +167,17 @@ class RolloutService:
             segments = ray.get(ref)
         except RayActorError as error:
             self.metrics.worker_restarts += 1
+            self._failures[index] += 1
+            if self._failures[index] > self.config.max_worker_restarts:
+                cause = str(error).strip().splitlines()[-1] if str(error).strip() else error
+                raise RolloutError(
+                    f"worker {index} failed {self._failures[index]} times in a row; last: {cause}"
+                ) from None
             log.warning("worker %d died (%s); Ray restarts it", index, error)
             self._worker_version[index] = 0  # a restarted worker needs the weights again
             self._issue(index)
             return 0
+        self._failures[index] = 0
         self._submits.append(self.learner.submit.remote(ref))
         self._observe(segments)
         self._issue(index)

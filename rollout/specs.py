@@ -6,8 +6,16 @@ these specs, never from hard-coded shapes.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
-from mlagents_envs.base_env import BehaviorSpec
+from mlagents_envs.base_env import (
+    ActionSpec,
+    BehaviorSpec,
+    DimensionProperty,
+    ObservationSpec,
+    ObservationType,
+)
 from torchrl.data import Binary, Composite, MultiCategorical, Unbounded
 
 from rollout import keys
@@ -60,3 +68,32 @@ def step_spec(spec: BehaviorSpec) -> Composite:
         size = sum(spec.action_spec.discrete_branches)
         entries[keys.ACTION_MASK] = Binary(size, shape=(size,), dtype=torch.bool)
     return Composite(entries)
+
+
+def spec_to_dict(spec: BehaviorSpec) -> dict[str, Any]:
+    return {
+        "observations": [
+            {
+                "name": o.name,
+                "shape": list(o.shape),
+                "dimension_property": [int(p.value) for p in o.dimension_property],
+                "observation_type": o.observation_type.value,
+            }
+            for o in spec.observation_specs
+        ],
+        "continuous": int(spec.action_spec.continuous_size),
+        "discrete": [int(b) for b in spec.action_spec.discrete_branches],
+    }
+
+
+def spec_from_dict(data: dict[str, Any]) -> BehaviorSpec:
+    observations = [
+        ObservationSpec(
+            tuple(o["shape"]),
+            tuple(DimensionProperty(p) for p in o["dimension_property"]),
+            ObservationType(o["observation_type"]),
+            o["name"],
+        )
+        for o in data["observations"]
+    ]
+    return BehaviorSpec(observations, ActionSpec(data["continuous"], tuple(data["discrete"])))

@@ -312,6 +312,8 @@ class UnityInstance:
         engine = EngineConfigurationChannel()
         engine.set_configuration_parameters(**vars(config.engine))
         params = EnvironmentParametersChannel()
+        if config.log_folder:  # mlagents passes -logFile <folder>/Player-0.log
+            Path(config.log_folder).mkdir(parents=True, exist_ok=True)
         for key, value in config.env_params.items():
             params.set_float_parameter(key, float(value))
         try:

@@ -8,6 +8,7 @@ service hands to the learner without touching the data.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import ray
@@ -31,13 +32,23 @@ class RolloutWorker:
         registry_dir: str | None = None,
     ) -> None:
         torch.set_num_threads(1)
+        # Distinct seeds (else two workers replay the same episodes) and player logs.
+        unity = dataclasses.replace(
+            unity,
+            seed=unity.seed + 1000 * index,
+            log_folder=f"{unity.log_folder}/worker-{index}" if unity.log_folder else None,
+        )
         allocator = PortAllocator(port_range, registry_dir)
         self.collector = Collector(unity, actor_factory, horizon, index, allocator)
         self.collector.start()
 
-    def collect(self, version: int, weights: Weights | None, min_rows: int) -> list[TensorDict]:
-        if weights is not None:
-            self.collector.load_weights(version, weights)
+    def collect(
+        self, version: int, published: tuple[int, Weights] | None, min_rows: int
+    ) -> list[TensorDict]:
+        """``published``: the learner's ``weights()`` result, (version, weights), or None
+        when this worker already has the newest version."""
+        if published is not None:
+            self.collector.load_weights(*published)
         return self.collector.collect(min_rows)
 
     def metrics(self) -> CollectorMetrics:

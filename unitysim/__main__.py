@@ -6,6 +6,7 @@ import argparse
 import logging
 import os
 import sys
+from pathlib import Path
 
 # gRPC's event-engine client costs ~30% more CPU per unary call than the classic one
 # (measured: 245-278 vs 176-181 us per exchange); the player makes one call per step.
@@ -28,6 +29,8 @@ def _logging(log_file: str | None) -> None:
     stderr.setFormatter(logging.Formatter("unitysim: %(message)s"))
     root.addHandler(stderr)
     if log_file:
+        if log_file != "-":  # a player creates its log's folder, as Unity does
+            Path(log_file).parent.mkdir(parents=True, exist_ok=True)
         handler = (
             logging.StreamHandler(sys.stdout)
             if log_file == "-"

@@ -33,7 +33,7 @@ def check_echo_segment(segment, spec) -> int:
     assert valid.any()
     # Padding only after the last valid step of a row.
     assert torch.equal(valid, valid.cummin(dim=1).values)
-    assert step_spec(spec).expand(*segment.batch_size).is_in(segment.exclude(keys.BEHAVIOR))
+    assert step_spec(spec).expand(*segment.batch_size).is_in(segment.exclude(*keys.METADATA))
     nxt = segment[keys.NEXT, keys.OBS, "Echo"]
     obs = segment[keys.OBS, "Echo"]
     action_c = segment[keys.ACTION, keys.CONTINUOUS]

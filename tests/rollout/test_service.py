@@ -51,7 +51,7 @@ def stop_worker(ray, worker) -> None:
 def check_spec(segment, specs) -> None:
     behavior = segment.get_non_tensor(keys.BEHAVIOR)
     spec = step_spec(specs[behavior]).expand(*segment.batch_size)
-    assert spec.is_in(segment.exclude(keys.BEHAVIOR)), behavior
+    assert spec.is_in(segment.exclude(*keys.METADATA)), behavior
 
 
 def test_dungeon_escape_agents_come_and_go(ray_session, registry):

@@ -1,0 +1,505 @@
+"""ML-Agents trainer-config YAML (``behaviors:``, ``default_settings:`` ...) for our learners.
+
+As in ``mlagents-learn``, a behavior's settings are merged over ``default_settings``, over
+the defaults of its trainer type, section by section. Everything is checked at load time,
+so a typo fails with one line naming the dotted key (and the key probably meant).
+
+- Errors (:class:`ConfigError`): unknown keys, bad types or ranges, another trainer's
+  hyperparameter, and ``trainer_type: poca`` (running another algorithm instead would
+  change the experiment silently).
+- Reported (``RunConfig.unsupported``, one ``logging.warning``): ML-Agents features we lack
+  (memory, other visual encoders, curiosity/GAIL/RND, self-play, behavioral cloning,
+  ``threaded``, ``init_path``, run-level ``env_settings`` ..., sampled or curriculum
+  environment parameters); training goes on without them. Values that ask for what we do
+  anyway (``vis_encode_type: simple``, ``memory: null``, ...) are not reported.
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import math
+import re
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import yaml
+
+from learners.policies import NetworkSettings, base_name
+
+logger = logging.getLogger(__name__)
+
+TRAINER_TYPES = ("ppo", "sac", "impala")
+SCHEDULES = ("linear", "constant")
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+UNITYSIM_PREFIX = "unitysim:"
+
+
+class ConfigError(ValueError):
+    """A trainer config we cannot run; the message is one line starting with the key path."""
+
+
+@dataclass(frozen=True)
+class Hyperparameters:
+    """``hyperparameters:`` of every trainer type; fields a trainer does not use keep defaults."""
+
+    batch_size: int = 1024
+    buffer_size: int = 10240
+    learning_rate: float = 3.0e-4
+    learning_rate_schedule: str = "linear"  # "linear" | "constant"
+    # PPO and IMPALA
+    beta: float = 5.0e-3  # entropy coefficient
+    epsilon: float = 0.2  # PPO clip
+    lambd: float = 0.95  # GAE lambda
+    num_epoch: int = 3
+    # SAC
+    buffer_init_steps: int = 0
+    tau: float = 0.005
+    steps_per_update: float = 1.0
+    init_entcoef: float = 1.0
+    # our extensions, not ML-Agents keys:
+    max_policy_lag: int = 2  # PPO: rows acted by weights > this many versions old are dropped
+    vtrace_rho_clip: float = 1.0  # IMPALA V-trace rho-bar
+    vtrace_c_clip: float = 1.0  # IMPALA V-trace c-bar
+
+
+@dataclass(frozen=True)
+class TrainerSettings:
+    """The settings of one behavior, resolved (nothing left to merge)."""
+
+    trainer_type: str = "ppo"  # "ppo" | "sac" | "impala"
+    hyperparameters: Hyperparameters = field(default_factory=Hyperparameters)
+    network_settings: NetworkSettings = field(default_factory=NetworkSettings)
+    gamma: float = 0.99  # reward_signals.extrinsic.gamma
+    reward_strength: float = 1.0  # reward_signals.extrinsic.strength
+    max_steps: int = 500_000
+    time_horizon: int = 64
+    summary_freq: int = 50_000
+    checkpoint_interval: int = 500_000
+    keep_checkpoints: int = 5
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A whole config file: per-behavior settings plus the run-level sections we use."""
+
+    behaviors: Mapping[str, TrainerSettings]
+    default: TrainerSettings  # default_settings over the built-in defaults
+    engine: Mapping[str, float | int | bool]  # only the engine_settings keys given
+    environment_parameters: Mapping[str, float]
+    unsupported: tuple[str, ...]  # dotted paths of known keys we do not implement
+    source: str = "<config>"
+
+    def for_behavior(self, behavior: str) -> TrainerSettings:
+        """Settings for ``behavior`` (``?team=`` ignored); ``default`` if not listed."""
+        return self.behaviors.get(base_name(behavior), self.default)
+
+
+def defaults(trainer_type: str = "ppo") -> TrainerSettings:
+    """ML-Agents' defaults for ``trainer_type`` (IMPALA, not in ML-Agents: PPO's, one epoch)."""
+    if trainer_type == "ppo":
+        return TrainerSettings()
+    if trainer_type == "sac":
+        hyper = Hyperparameters(
+            batch_size=128, buffer_size=50_000, learning_rate_schedule="constant"
+        )
+        return TrainerSettings(trainer_type="sac", hyperparameters=hyper)
+    if trainer_type == "impala":
+        return TrainerSettings(trainer_type="impala", hyperparameters=Hyperparameters(num_epoch=1))
+    raise ConfigError(f"trainer_type: {_trainer_type_problem(trainer_type)}")
+
+
+# ---- value checks: each returns the parsed value or raises ConfigError at `path` ----------
+
+_FLOAT_TEXT = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+Check = Callable[[str, object], Any]
+
+
+def _number(path: str, value: object, what: str) -> float:
+    """A finite number: ints, floats and the strings PyYAML leaves for ``3.0e-4``."""
+    text_ok = isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()) is not None
+    if isinstance(value, bool) or not (isinstance(value, int | float) or text_ok):
+        raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
+    number = float(value)  # type: ignore[arg-type]
+    if not math.isfinite(number):
+        raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
+    return number
+
+
+def _float(low: float | None = None, high: float | None = None, *, open_low: bool = False) -> Check:
+    """A float check with an optional range (``open_low``: low itself excluded)."""
+    if low is None:
+        what = "a number"
+    elif low == 0 and high is None:
+        what = "a positive number" if open_low else "a number >= 0"
+    else:
+        what = f"a number in {'(' if open_low else '['}{low:g}, {high:g}]"
+
+    def check(path: str, value: object) -> float:
+        number = _number(path, value, what)
+        if low is not None and (number < low or (open_low and number == low)):
+            raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
+        if high is not None and number > high:
+            raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
+        return number
+
+    return check
+
+
+def _int(low: int = 1) -> Check:
+    """An integer >= ``low``; ``5.0e5`` is accepted as 500000, ``1.5`` is not."""
+    what = {1: "a positive integer", 0: "an integer >= 0"}.get(low, f"an integer >= {low}")
+
+    def check(path: str, value: object) -> int:
+        number = _number(path, value, what)
+        if number != int(number) or number < low:
+            raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
+        return int(number)
+
+    return check
+
+
+def _bool(path: str, value: object) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{path}: expected true or false, got {_show(value)}")
+    return value
+
+
+def _choice(*allowed: str) -> Check:
+    def check(path: str, value: object) -> str:
+        if value not in allowed:
+            raise ConfigError(f"{path}: expected one of {', '.join(allowed)}, got {_show(value)}")
+        return str(value)
+
+    return check
+
+
+POSITIVE_INT, POSITIVE = _int(1), _float(0, open_low=True)
+
+# hyperparameters by trainer type; SHARED are valid for all three
+SHARED: dict[str, Check] = {
+    "batch_size": POSITIVE_INT,
+    "buffer_size": POSITIVE_INT,
+    "learning_rate": POSITIVE,
+    "learning_rate_schedule": _choice(*SCHEDULES),
+}
+_ON_POLICY: dict[str, Check] = {
+    "beta": _float(0),
+    "epsilon": POSITIVE,
+    "lambd": _float(0, 1),
+    "num_epoch": POSITIVE_INT,
+}
+HYPER: dict[str, dict[str, Check]] = {
+    "ppo": {**SHARED, **_ON_POLICY, "max_policy_lag": _int(0)},
+    "impala": {**SHARED, **_ON_POLICY, "vtrace_rho_clip": POSITIVE, "vtrace_c_clip": POSITIVE},
+    "sac": {
+        **SHARED,
+        "buffer_init_steps": _int(0),
+        "tau": _float(0, 1, open_low=True),
+        "steps_per_update": POSITIVE,
+        "init_entcoef": POSITIVE,
+    },
+}
+# ML-Agents keys we do not implement, each with the value that asks for what we do anyway
+# (not reported; ALWAYS: reported whatever the value)
+ALWAYS = object()
+HYPER_UNSUPPORTED: dict[str, dict[str, object]] = {
+    "ppo": {"beta_schedule": ALWAYS, "epsilon_schedule": ALWAYS, "shared_critic": False},
+    "impala": {"beta_schedule": ALWAYS, "epsilon_schedule": ALWAYS, "shared_critic": False},
+    "sac": {"save_replay_buffer": False, "reward_signal_steps_per_update": ALWAYS},
+}
+NETWORK: dict[str, Check] = {
+    "hidden_units": POSITIVE_INT,
+    "num_layers": POSITIVE_INT,
+    "normalize": _bool,
+}
+NETWORK_UNSUPPORTED: dict[str, object] = {
+    "vis_encode_type": "simple",
+    "memory": None,
+    "goal_conditioning_type": "none",  # we feed goal signals in as ordinary inputs
+    "deterministic": False,
+}
+TOP: dict[str, Check] = {
+    "max_steps": POSITIVE_INT,
+    "time_horizon": POSITIVE_INT,
+    "summary_freq": POSITIVE_INT,
+    "checkpoint_interval": POSITIVE_INT,
+    "keep_checkpoints": POSITIVE_INT,
+}
+TOP_UNSUPPORTED: dict[str, object] = {
+    "init_path": None,
+    "threaded": ALWAYS,
+    "self_play": None,
+    "behavioral_cloning": None,
+    "even_checkpoints": False,
+}
+SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")
+EXTRINSIC: dict[str, Check] = {"gamma": _float(0, 1, open_low=True), "strength": _float(0)}
+REWARD_UNSUPPORTED = ("curiosity", "gail", "rnd")
+ENGINE: dict[str, Check] = {
+    "time_scale": POSITIVE,
+    "width": POSITIVE_INT,
+    "height": POSITIVE_INT,
+    "quality_level": _int(0),
+    "target_frame_rate": _int(-1),
+    "capture_frame_rate": _int(0),
+    "no_graphics": _bool,
+}
+ENGINE_UNSUPPORTED = ("no_graphics_monitor",)
+RUN_UNSUPPORTED = ("env_settings", "checkpoint_settings", "torch_settings", "debug")
+RUN_KEYS = ("behaviors", "default_settings", "engine_settings", "environment_parameters")
+
+
+def _all_hyper_keys() -> set[str]:
+    keys = {k for table in HYPER.values() for k in table}
+    return keys | {k for table in HYPER_UNSUPPORTED.values() for k in table}
+
+
+def _trainer_type_problem(value: object) -> str:
+    if value == "poca":
+        return "'poca' is not supported; use ppo, sac or impala"
+    return f"expected one of {', '.join(TRAINER_TYPES)}, got {_show(value)}"
+
+
+def _unknown(path: str, key: object, known: Iterable[str]) -> ConfigError:
+    """An unknown key, with the closest known one when there is a likely match."""
+    names = sorted(known)
+    close = difflib.get_close_matches(str(key), names, n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(names)}"
+    return ConfigError(
+        f"{path}.{key}: unknown key; {hint}" if path else f"{key}: unknown key; {hint}"
+    )
+
+
+def _show(value: object) -> str:
+    """``repr`` cut short, so a misplaced section still makes a one-line message."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _mapping(path: str, value: object) -> Mapping[str, Any]:
+    """A section: a mapping with string keys; ``null`` (an empty YAML section) is empty."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{path}: expected a mapping, got {_show(value)}")
+    for key in value:
+        if not isinstance(key, str):
+            raise ConfigError(f"{path}.{key}: keys must be strings")
+    return value
+
+
+def _ignored_value(value: object, neutral: object) -> bool:
+    """Whether an unsupported key's value is what we do anyway (so nothing to report)."""
+    return neutral is not ALWAYS and value == neutral
+
+
+# ---- layers: one trainer-settings mapping, checked and parsed but not merged --------------
+
+
+@dataclass
+class _Layer:
+    """What one ``default_settings`` or behavior section sets, parsed, by section."""
+
+    trainer_type: str | None = None
+    hyper: dict[str, Any] = field(default_factory=dict)
+    network: dict[str, Any] = field(default_factory=dict)
+    extrinsic: dict[str, Any] = field(default_factory=dict)
+    top: dict[str, Any] = field(default_factory=dict)
+
+
+def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[str]) -> _Layer:
+    """Check one trainer-settings section against ``trainer_type`` (its own or inherited)."""
+    data = _mapping(path, raw)
+    layer = _Layer()
+    known = {*SECTIONS, *TOP, *TOP_UNSUPPORTED}
+    for key in data:
+        if key not in known:
+            raise _unknown(path, key, known)
+    if "trainer_type" in data:
+        value = data["trainer_type"]
+        if value not in TRAINER_TYPES:
+            raise ConfigError(f"{path}.trainer_type: {_trainer_type_problem(value)}")
+        layer.trainer_type = value
+    trainer_type = layer.trainer_type or inherited_type
+    for key, check in TOP.items():
+        if key in data:
+            layer.top[key] = check(f"{path}.{key}", data[key])
+    for key, neutral in TOP_UNSUPPORTED.items():
+        if key in data and not _ignored_value(data[key], neutral):
+            unsupported.append(f"{path}.{key}")
+
+    hyper_path = f"{path}.hyperparameters"
+    checks, extra = HYPER[trainer_type], HYPER_UNSUPPORTED[trainer_type]
+    for key, value in _mapping(hyper_path, data.get("hyperparameters")).items():
+        if key in checks:
+            layer.hyper[key] = checks[key](f"{hyper_path}.{key}", value)
+        elif key in extra:
+            if not _ignored_value(value, extra[key]):
+                unsupported.append(f"{hyper_path}.{key}")
+        elif key in _all_hyper_keys():
+            owners = [t for t in TRAINER_TYPES if key in HYPER[t] or key in HYPER_UNSUPPORTED[t]]
+            only = ", ".join(owners)
+            raise ConfigError(
+                f"{hyper_path}.{key}: not a {trainer_type} hyperparameter ({only} only)"
+            )
+        else:
+            raise _unknown(hyper_path, key, {*checks, *extra})
+
+    net_path = f"{path}.network_settings"
+    for key, value in _mapping(net_path, data.get("network_settings")).items():
+        if key in NETWORK:
+            layer.network[key] = NETWORK[key](f"{net_path}.{key}", value)
+        elif key in NETWORK_UNSUPPORTED:
+            if not _ignored_value(value, NETWORK_UNSUPPORTED[key]):
+                unsupported.append(f"{net_path}.{key}")
+        else:
+            raise _unknown(net_path, key, {*NETWORK, *NETWORK_UNSUPPORTED})
+
+    reward_path = f"{path}.reward_signals"
+    for key, value in _mapping(reward_path, data.get("reward_signals")).items():
+        if key in REWARD_UNSUPPORTED:
+            unsupported.append(f"{reward_path}.{key}")
+        elif key == "extrinsic":
+            signal_path = f"{reward_path}.extrinsic"
+            for name, item in _mapping(signal_path, value).items():
+                if name in EXTRINSIC:
+                    layer.extrinsic[name] = EXTRINSIC[name](f"{signal_path}.{name}", item)
+                elif name == "network_settings":
+                    unsupported.append(f"{signal_path}.{name}")
+                else:
+                    raise _unknown(signal_path, name, {*EXTRINSIC, "network_settings"})
+        else:
+            raise _unknown(reward_path, key, {"extrinsic", *REWARD_UNSUPPORTED})
+    return layer
+
+
+def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSettings:
+    """Merge ``layers`` (later wins, key by key) over ``defaults(trainer_type)``.
+
+    A layer's hyperparameters that ``trainer_type`` does not use (``default_settings`` for
+    PPO under a SAC behavior) are skipped: the layer was checked against its own type.
+    """
+    base = defaults(trainer_type)
+    hyper: dict[str, Any] = {}
+    network: dict[str, Any] = {}
+    extrinsic: dict[str, Any] = {}
+    top: dict[str, Any] = {}
+    for layer in layers:
+        hyper.update((k, v) for k, v in layer.hyper.items() if k in HYPER[trainer_type])
+        network.update(layer.network)
+        extrinsic.update(layer.extrinsic)
+        top.update(layer.top)
+    settings = replace(
+        base,
+        hyperparameters=replace(base.hyperparameters, **hyper),
+        network_settings=replace(base.network_settings, **network),
+        gamma=extrinsic.get("gamma", base.gamma),
+        reward_strength=extrinsic.get("strength", base.reward_strength),
+        **top,
+    )
+    h = settings.hyperparameters
+    if trainer_type != "sac" and h.batch_size > h.buffer_size:
+        raise ConfigError(
+            f"{path}.hyperparameters.batch_size: {h.batch_size} is larger than "
+            f"buffer_size {h.buffer_size}"
+        )
+    return settings
+
+
+# ---- whole files --------------------------------------------------------------------------
+
+
+def _engine(raw: object, unsupported: list[str]) -> dict[str, float | int | bool]:
+    engine: dict[str, float | int | bool] = {}
+    for key, value in _mapping("engine_settings", raw).items():
+        if key in ENGINE:
+            engine[key] = ENGINE[key](f"engine_settings.{key}", value)
+        elif key in ENGINE_UNSUPPORTED:
+            unsupported.append(f"engine_settings.{key}")
+        else:
+            raise _unknown("engine_settings", key, {*ENGINE, *ENGINE_UNSUPPORTED})
+    return engine
+
+
+def _environment_parameters(raw: object, unsupported: list[str]) -> dict[str, float]:
+    """Plain numbers; samplers and curricula (mappings) are reported and left out."""
+    parameters: dict[str, float] = {}
+    for key, value in _mapping("environment_parameters", raw).items():
+        path = f"environment_parameters.{key}"
+        if isinstance(value, Mapping) and ({"sampler_type", "curriculum"} & set(value)):
+            unsupported.append(path)
+        else:
+            parameters[key] = _number(path, value, "a number (samplers and curricula unsupported)")
+    return parameters
+
+
+def parse_config(data: object, source: str = "<config>") -> RunConfig:
+    """Check and resolve an already-loaded trainer config (the YAML's top-level mapping)."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{source}: top level must be a mapping, got {type(data).__name__}")
+    known = {*RUN_KEYS, *RUN_UNSUPPORTED}
+    for key in data:
+        if key not in known:
+            raise _unknown("", key, known)
+    unsupported = [key for key in RUN_UNSUPPORTED if key in data]
+
+    # default_settings' unsupported keys are reported once, not per behavior inheriting them
+    default_layer = _parse_layer(
+        "default_settings", data.get("default_settings"), "ppo", unsupported
+    )
+    default_type = default_layer.trainer_type or "ppo"
+    default = _resolve("default_settings", default_type, [default_layer])
+
+    behaviors: dict[str, TrainerSettings] = {}
+    for name, raw in _mapping("behaviors", data.get("behaviors")).items():
+        path = f"behaviors.{name}"
+        key = base_name(name)
+        if not key or key in behaviors:
+            raise ConfigError(f"{path}: {'empty' if not key else 'duplicate'} behavior name")
+        layer = _parse_layer(path, raw, default_type, unsupported)
+        trainer_type = layer.trainer_type or default_type
+        behaviors[key] = _resolve(path, trainer_type, [default_layer, layer])
+
+    engine = _engine(data.get("engine_settings"), unsupported)
+    parameters = _environment_parameters(data.get("environment_parameters"), unsupported)
+    reported = tuple(dict.fromkeys(unsupported))
+    if reported:
+        logger.warning("%s: not supported, ignored: %s", source, ", ".join(reported))
+    return RunConfig(
+        behaviors=MappingProxyType(behaviors),
+        default=default,
+        engine=MappingProxyType(engine),
+        environment_parameters=MappingProxyType(parameters),
+        unsupported=reported,
+        source=source,
+    )
+
+
+def load_config(path: str | Path) -> RunConfig:
+    """Read and check a trainer-config YAML file; every problem is one ``ConfigError`` line."""
+    source = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as error:
+        raise ConfigError(f"{source}: cannot read ({error.strerror or error})") from error
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+        raise ConfigError(f"{source}: invalid YAML: {where}{problem}") from error
+    return parse_config(data, source)
+
+
+def config_for_env(env: str) -> Path | None:
+    """The shipped config of ``unitysim:<Env>`` (or bare ``<Env>``), if ``config/`` has one."""
+    name = env.removeprefix(UNITYSIM_PREFIX)
+    if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name):
+        return None
+    path = CONFIG_DIR / f"{name}.yaml"
+    return path if path.is_file() else None

@@ -1,0 +1,150 @@
+"""ONNX export of trained policies in the ML-Agents layout, for Unity's inference engine.
+
+Owns the exported graph: inputs ``obs_0..obs_{n-1}`` (one per sensor, in spec order, batch
+axis dynamic, images NCHW as current ML-Agents writes them) and ``action_masks`` (discrete only,
+float, 1 = allowed), and the outputs Unity's ``SentisModelParamLoader`` reads: the float
+constants ``version_number`` (3) and ``memory_size`` (0), the action-size constants, the
+stochastic actions sampled inside the graph (as ML-Agents does) and their deterministic
+twins. Continuous actions are clipped to [-1, 1] in the graph, the transform the collector
+applies before sending them to Unity, so the file acts as the policy did in training.
+Also owns ``export_checkpoint`` (one ``.onnx`` per behavior) behind ``unity-rollout export``.
+Not owned: the networks (``learners.policies``), the checkpoint format
+(``learners.checkpoint``), recurrent memories (no network here has one). See docs/export.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from pathlib import Path
+
+import onnx
+import torch
+from torch import nn
+
+from learners import checkpoint
+from learners.policies import ActorCritic
+
+__all__ = ["MODEL_EXPORT_VERSION", "OPSET", "export_checkpoint", "export_onnx", "onnx_names"]
+
+MODEL_EXPORT_VERSION = 3  # ML-Agents' ModelApiVersion.MLAgents2_0 (obs_{i} inputs)
+OPSET = 9  # ML-Agents' SerializationSettings.onnx_opset
+_MASK_PENALTY = 1e8  # masked logits: logit * 0 - 1e8, as ML-Agents masks (no -inf, no Where)
+
+
+class _ExportedPolicy(nn.Module):
+    """The acting path of an :class:`ActorCritic`, with ML-Agents' inputs and outputs."""
+
+    def __init__(self, network: ActorCritic) -> None:
+        super().__init__()
+        self.network = network
+        continuous, branches = network.continuous, network.branches
+        # Unity reads these constants as float tensors (SentisModelInfo casts Tensor<float>).
+        self.register_buffer("version_number", torch.tensor([float(MODEL_EXPORT_VERSION)]))
+        self.register_buffer("memory_size", torch.tensor([0.0]))
+        self.register_buffer("continuous_shape", torch.tensor([float(continuous)]))
+        self.register_buffer("discrete_shape", torch.tensor([[float(b) for b in branches]]))
+
+    def forward(self, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        net = self.network
+        count = len(net.sensor_names)
+        hidden = net.features(dict(zip(net.sensor_names, inputs[:count], strict=True)))
+        outputs = [self.version_number.clone(), self.memory_size.clone()]
+        if net.mean is not None and net.log_std is not None:
+            mean = net.mean(hidden)
+            sample = mean + torch.randn_like(mean) * torch.exp(net.log_std)
+            outputs += [
+                sample.clamp(-1.0, 1.0),
+                self.continuous_shape.clone(),
+                mean.clamp(-1.0, 1.0),
+            ]
+        if net.logits is not None:
+            allowed = inputs[count]
+            logits = net.logits(hidden) * allowed - _MASK_PENALTY * (1.0 - allowed)
+            sampled, deterministic, offset = [], [], 0
+            for size in net.branches:
+                branch = logits[:, offset : offset + size]
+                offset += size
+                sampled.append(torch.multinomial(torch.softmax(branch, dim=1), 1))
+                deterministic.append(torch.argmax(branch, dim=1, keepdim=True))
+            outputs += [
+                torch.cat(sampled, dim=1),
+                self.discrete_shape.clone(),
+                torch.cat(deterministic, dim=1),
+            ]
+        return tuple(outputs)
+
+
+def onnx_names(network: ActorCritic) -> tuple[list[str], list[str]]:
+    """(input names, output names) of the exported graph, in order."""
+    inputs = [f"obs_{i}" for i in range(len(network.sensor_names))]
+    outputs = ["version_number", "memory_size"]
+    if network.continuous:
+        outputs += [
+            "continuous_actions",
+            "continuous_action_output_shape",
+            "deterministic_continuous_actions",
+        ]
+    if network.branches:
+        inputs.append("action_masks")
+        outputs += [
+            "discrete_actions",
+            "discrete_action_output_shape",
+            "deterministic_discrete_actions",
+        ]
+    return inputs, outputs
+
+
+def export_onnx(network: ActorCritic, path: str | Path) -> Path:
+    """Write one behavior's policy to ``path`` (an ONNX file Unity loads as a model asset)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    wrapper = _ExportedPolicy(copy.deepcopy(network).cpu()).eval()
+    input_names, output_names = onnx_names(network)
+    dummy: list[torch.Tensor] = [
+        torch.zeros(1, *spec.shape) for spec in network.spec.observation_specs
+    ]
+    if network.branches:
+        dummy.append(torch.ones(1, sum(network.branches)))
+    dynamic_axes = {  # the batch axis of every input and of every action output
+        name: {0: "batch"}
+        for name in input_names + output_names
+        if name.startswith("obs_") or name == "action_masks" or name.endswith("_actions")
+    }
+    with torch.no_grad(), warnings.catch_warnings():
+        # The TorchScript exporter is deprecated upstream but is the one that writes the
+        # opset-9 graph ML-Agents does (and needs no onnxscript).
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(
+            wrapper,
+            tuple(dummy),
+            str(path),
+            input_names=input_names,
+            output_names=output_names,
+            dynamic_axes=dynamic_axes,
+            opset_version=OPSET,
+            do_constant_folding=True,
+            dynamo=False,
+        )
+    onnx.checker.check_model(onnx.load(str(path)))
+    return path
+
+
+def export_checkpoint(source: str | Path, out_dir: str | Path | None = None) -> list[Path]:
+    """Export every behavior of a checkpoint (a ``.pt`` file or a run directory).
+
+    Files are named after the behavior with ``?`` replaced by ``_`` (``3DBall_team=0.onnx``).
+    ``out_dir`` defaults to ``<run dir>/exported`` when the checkpoint lies in a run's
+    ``checkpoints/`` directory, else to the checkpoint's own directory.
+    """
+    source = Path(source)
+    file = checkpoint.latest(source) if source.is_dir() else source
+    state = checkpoint.load(file)
+    if out_dir is None:
+        parent = file.parent
+        out_dir = parent.parent / "exported" if parent.name == "checkpoints" else parent
+    out_dir = Path(out_dir)
+    return [
+        export_onnx(network, out_dir / f"{behavior.replace('?', '_')}.onnx")
+        for behavior, network in checkpoint.networks(state).items()
+    ]

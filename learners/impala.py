@@ -1,0 +1,149 @@
+"""IMPALA for one behavior: V-trace targets (torchrl's ``vtrace_advantage_estimate``) and
+an actor-critic loss (torchrl's ``A2CLoss``), for fully asynchronous collection.
+
+Unlike PPO, no step is dropped for being old: V-trace corrects each step against the
+log-probability of the policy that really acted, with truncated importance weights
+(``vtrace_rho_clip``, ``vtrace_c_clip``). One update per ``buffer_size`` steps: shuffled
+minibatches of whole ``[T]`` rows (V-trace runs along time), each its own gradient step.
+
+torchrl's ``VTrace`` module re-samples an action to get the current log-probability; the
+importance ratio needs the log-probability of the action taken, so this file evaluates
+the policy on the stored action itself and calls the same functional estimator.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import torch
+from tensordict import TensorDict
+from torchrl.objectives import A2CLoss
+from torchrl.objectives.value.functional import vtrace_advantage_estimate
+
+from learners.modules import (
+    FLAT_ACTION,
+    add_flat_action,
+    obs_keys,
+    probabilistic_actor,
+    value_operator,
+)
+from learners.policies import ActorCritic
+from learners.schedules import linear_decay
+from rollout import keys
+
+if TYPE_CHECKING:
+    from learners.config import TrainerSettings
+
+
+class IMPALA:
+    def __init__(self, network: ActorCritic, settings: TrainerSettings) -> None:
+        self.network, self.settings = network, settings
+        h = settings.hyperparameters
+        self.actor, self.critic = probabilistic_actor(network), value_operator(network)
+        self.loss = A2CLoss(
+            self.actor,
+            self.critic,
+            entropy_coeff=h.beta,
+            critic_coeff=0.5,
+            loss_critic_type="l2",
+            functional=False,
+        )
+        self.loss.set_keys(action=FLAT_ACTION, sample_log_prob=keys.LOG_PROB)
+        self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate)
+        self.pending: list[TensorDict] = []
+        self.pending_steps = 0
+        self.max_lag_seen = 0
+
+    def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
+        """Buffer a ``[B, T]`` segment; every valid step counts, however old."""
+        segment = segment.exclude(*keys.METADATA)
+        steps = int(segment[keys.VALID].sum())
+        if steps:
+            self.pending.append(segment)
+            self.pending_steps += steps
+            self.max_lag_seen = max(self.max_lag_seen, int(lag[segment[keys.VALID]].max()))
+        return steps
+
+    def ready(self) -> bool:
+        return self.pending_steps >= self.settings.hyperparameters.buffer_size
+
+    def vtrace(self, rows: TensorDict) -> TensorDict:
+        """Set ``advantage`` and ``value_target`` on ``[B, T]`` rows (no gradient)."""
+        h = self.settings.hyperparameters
+        with torch.no_grad():
+            log_pi = self.actor.get_dist(rows).log_prob(rows[FLAT_ACTION]).unsqueeze(-1)
+            value = self.critic(rows.select(*obs_keys(self.network)))["state_value"]
+            next_rows = rows[keys.NEXT].select(*obs_keys(self.network))
+            next_value = self.critic(next_rows)["state_value"]
+            advantage, target = vtrace_advantage_estimate(
+                self.settings.gamma,
+                log_pi,
+                rows[keys.LOG_PROB].unsqueeze(-1),
+                value,
+                next_value,
+                rows[keys.NEXT, keys.REWARD],
+                rows[keys.NEXT, keys.DONE],
+                rows[keys.NEXT, keys.TERMINATED],
+                rho_thresh=h.vtrace_rho_clip,
+                c_thresh=h.vtrace_c_clip,
+                time_dim=-2,
+            )
+        rows.set("advantage", advantage)
+        rows.set("value_target", target)
+        rows.set("rho", (log_pi - rows[keys.LOG_PROB].unsqueeze(-1)).exp())
+        return rows
+
+    def update(self, progress: float) -> dict[str, float]:
+        h = self.settings.hyperparameters
+        batch = torch.cat(self.pending, dim=0)
+        self.pending, self.pending_steps = [], 0
+        valid = batch[keys.VALID]
+        obs = batch[keys.OBS]
+        self.network.update_normalization({n: obs[n][valid] for n in obs.keys()})  # noqa: SIM118
+        batch[keys.NEXT, keys.REWARD] = (
+            batch[keys.NEXT, keys.REWARD] * self.settings.reward_strength
+        )
+        add_flat_action(batch)
+
+        lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        rows_per_batch = max(1, h.batch_size // batch.shape[1])
+        totals: dict[str, float] = {}
+        updates, samples, rho_sum, value_sum = 0, 0, 0.0, 0.0
+        for _ in range(h.num_epoch):
+            for index in torch.randperm(batch.shape[0]).split(rows_per_batch):
+                rows = self.vtrace(batch[index])
+                steps = rows[rows[keys.VALID]]
+                if len(steps) < 2:
+                    continue
+                losses = self.loss(steps)
+                loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
+                self.optimizer.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.network.parameters(), 0.5)
+                self.optimizer.step()
+                for key, value in losses.items():
+                    totals[key] = totals.get(key, 0.0) + float(value.detach().mean())
+                updates += 1
+                samples += len(steps)
+                rho_sum += float(steps["rho"].sum())
+                value_sum += float(steps["value_target"].sum())
+        mean = {key: value / max(updates, 1) for key, value in totals.items()}
+        return {
+            "Losses/Policy Loss": mean.get("loss_objective", 0.0),
+            "Losses/Value Loss": mean.get("loss_critic", 0.0) * 2,  # undo critic_coeff 0.5
+            "Policy/Entropy": mean.get("entropy", 0.0),
+            "Policy/Learning Rate": lr,
+            "Policy/Beta": h.beta,
+            "Policy/Extrinsic Value Estimate": value_sum / max(samples, 1),
+            "Policy/Mean Importance Ratio": rho_sum / max(samples, 1),
+            "Policy/Max Lag Seen": float(self.max_lag_seen),
+            "Policy/Samples": float(samples // max(h.num_epoch, 1)),
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -1,0 +1,190 @@
+"""The central learner: one network and one algorithm per behavior, weights by version.
+
+Implements the contract of ``rollout/learner_api.py`` (``submit`` segments, ``weights``)
+as a plain class, so every algorithm runs and is tested without Ray; ``learner_actor``
+is the Ray shell the CLI starts. Behaviors are discovered from the segments themselves
+(each carries its ``BehaviorSpec`` as a dict), and built with the same
+``PolicyFactory`` the workers use, so learner and worker networks always match.
+
+Versions: one global counter, bumped by every update of any behavior. Policy lag of a
+step is counted in updates *of its own behavior* since the version that acted, so two
+behaviors learning side by side do not make each other's data look stale.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Protocol
+
+import torch
+from tensordict import TensorDict
+
+from learners import checkpoint
+from learners.policies import ActorCritic, PolicyFactory, base_name
+from rollout import keys
+from rollout.specs import spec_from_dict
+
+if TYPE_CHECKING:
+    from learners.config import RunConfig, TrainerSettings
+
+
+class Algorithm(Protocol):
+    """What ``learners/ppo.py``, ``sac.py`` and ``impala.py`` each provide."""
+
+    network: ActorCritic
+
+    def add(self, segment: TensorDict, lag: torch.Tensor) -> int: ...
+    def ready(self) -> bool: ...
+    def update(self, progress: float) -> dict[str, float]: ...
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+def make_algorithm(network: ActorCritic, settings: TrainerSettings) -> Algorithm:
+    if settings.trainer_type == "ppo":
+        from learners.ppo import PPO
+
+        return PPO(network, settings)
+    if settings.trainer_type == "sac":
+        from learners.sac import SAC
+
+        return SAC(network, settings)
+    if settings.trainer_type == "impala":
+        from learners.impala import IMPALA
+
+        return IMPALA(network, settings)
+    raise ValueError(f"trainer_type {settings.trainer_type!r}: use ppo, sac or impala")
+
+
+def policy_factory(config: RunConfig) -> PolicyFactory:
+    """The factory workers and learner share: network settings of each configured behavior."""
+    return PolicyFactory(
+        {name: s.network_settings for name, s in config.behaviors.items()},
+        config.default.network_settings,
+    )
+
+
+@dataclass
+class BehaviorState:
+    spec: dict[str, Any]
+    settings: TrainerSettings
+    network: ActorCritic
+    algorithm: Algorithm
+    steps: int = 0  # agent steps received (ML-Agents' "Step")
+    updates: list[int] = field(default_factory=list)  # global versions this behavior made
+
+
+@dataclass
+class LearnerStats:
+    samples: int = 0  # valid steps consumed by updates
+    update_seconds: float = 0.0
+    submit_seconds: float = 0.0
+    updates: int = 0
+
+
+class CentralLearner:
+    def __init__(self, config: RunConfig, max_steps: int | None = None) -> None:
+        torch.set_num_threads(1)  # shares the node with Unity workers: one core's worth
+        self.config = config
+        self.max_steps = max_steps  # overrides each behavior's max_steps (CLI --max-steps)
+        self.factory = policy_factory(config)
+        self.version = 0
+        self.behaviors: dict[str, BehaviorState] = {}
+        self.stats = LearnerStats()
+        self._reports: list[tuple[str, int, dict[str, float]]] = []
+
+    # --- the learner contract -----------------------------------------------------------
+
+    def submit(self, segments: list[TensorDict]) -> int:
+        started = time.perf_counter()
+        for segment in segments:
+            behavior = segment.get_non_tensor(keys.BEHAVIOR)
+            state = self._behavior(behavior, segment.get_non_tensor(keys.SPEC))
+            # policy lag = this behavior's updates made after the version that acted
+            updates = torch.tensor(state.updates, dtype=torch.int64)
+            acted = segment[keys.POLICY_VERSION].contiguous()
+            lag = len(updates) - torch.searchsorted(updates, acted, right=True)
+            state.steps += int(segment[keys.VALID].sum())
+            state.algorithm.add(segment, lag)
+            if state.algorithm.ready():
+                self._update(behavior, state)
+        self.stats.submit_seconds += time.perf_counter() - started
+        return self.version
+
+    def weights(self) -> tuple[int, dict[str, dict[str, torch.Tensor]]]:
+        return self.version, {name: s.network.state_dict() for name, s in self.behaviors.items()}
+
+    # --- internals ----------------------------------------------------------------------
+
+    def _behavior(self, behavior: str, spec: dict[str, Any]) -> BehaviorState:
+        if behavior not in self.behaviors:
+            settings = self.config.for_behavior(behavior)
+            network = self.factory.network(behavior, spec_from_dict(spec))
+            self.behaviors[behavior] = BehaviorState(
+                spec, settings, network, make_algorithm(network, settings)
+            )
+        return self.behaviors[behavior]
+
+    def _update(self, behavior: str, state: BehaviorState) -> None:
+        started = time.perf_counter()
+        report = state.algorithm.update(progress=state.steps / self.behavior_max_steps(behavior))
+        self.stats.update_seconds += time.perf_counter() - started
+        self.stats.samples += int(report.get("Policy/Samples", 0))
+        self.stats.updates += 1
+        self.version += 1
+        state.updates.append(self.version)
+        self._reports.append((behavior, state.steps, report))
+
+    def behavior_max_steps(self, behavior: str) -> int:
+        return self.max_steps or self.config.for_behavior(behavior).max_steps
+
+    # --- for the driver -----------------------------------------------------------------
+
+    def progress(self) -> dict[str, Any]:
+        """Steps per behavior, whether all are done, and learner throughput."""
+        steps = {name: s.steps for name, s in self.behaviors.items()}
+        done = bool(steps) and all(s >= self.behavior_max_steps(name) for name, s in steps.items())
+        return {"version": self.version, "steps": steps, "done": done, "stats": self.stats}
+
+    def drain_reports(self) -> list[tuple[str, int, dict[str, float]]]:
+        """(behavior, step, metrics) of each update since the last call (for TensorBoard)."""
+        reports, self._reports = self._reports, []
+        return reports
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything to resume (the layout of ``learners/checkpoint.py``)."""
+        return {
+            "step": sum(s.steps for s in self.behaviors.values()),
+            "version": self.version,
+            "behaviors": {
+                name: {
+                    "spec": s.spec,
+                    "network_settings": checkpoint.network_settings_dict(s.network.settings),
+                    "network": s.network.state_dict(),
+                    "algorithm": s.algorithm.state_dict(),
+                    "steps": s.steps,
+                    "updates": list(s.updates),
+                }
+                for name, s in self.behaviors.items()
+            },
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.version = int(state["version"])
+        for name, entry in state["behaviors"].items():
+            behavior = self._behavior(name, entry["spec"])
+            behavior.network.load_state_dict(entry["network"])
+            behavior.algorithm.load_state_dict(entry["algorithm"])
+            behavior.steps = int(entry["steps"])
+            behavior.updates = [int(v) for v in entry["updates"]]
+
+
+def learner_actor(config: RunConfig, max_steps: int | None = None, num_cpus: float = 0) -> Any:
+    """Start the learner as a Ray actor (imported here so the class itself needs no Ray)."""
+    import ray
+
+    return ray.remote(CentralLearner).options(num_cpus=num_cpus).remote(config, max_steps)
+
+
+__all__ = ["Algorithm", "CentralLearner", "base_name", "learner_actor", "policy_factory"]

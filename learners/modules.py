@@ -1,0 +1,164 @@
+"""torchrl views of an :class:`~learners.policies.ActorCritic`: the probabilistic actor and
+the value operator that torchrl's losses (ClipPPOLoss, A2CLoss) and value estimators (GAE,
+V-trace) take.
+
+An ML-Agents action can be hybrid (continuous and several masked discrete branches at
+once), so the actor's distribution is one :class:`ActionDistribution` over a flat action
+vector ``[continuous..., branch indices as floats...]`` (key ``keys.FLAT_ACTION``), built
+by :func:`add_flat_action` from the segment's ``("action", ...)`` entries. The modules
+share the network's parameters; nothing here owns weights.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import (
+    ProbabilisticTensorDictModule,
+    ProbabilisticTensorDictSequential,
+    TensorDictModule,
+)
+from torch import nn
+from torch.distributions import Distribution, Normal
+from torchrl.modules import MaskedCategorical
+
+from learners.policies import ActorCritic
+from rollout import keys
+
+FLAT_ACTION = "flat_action"
+PARAM_KEYS = ("loc", "scale", "logits")
+
+
+class ActionDistribution(Distribution):
+    """Independent Gaussian (continuous) and masked categoricals (one per branch)."""
+
+    arg_constraints: dict = {}
+    has_rsample = False
+
+    def __init__(
+        self,
+        loc: torch.Tensor | None = None,
+        scale: torch.Tensor | None = None,
+        logits: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+        *,
+        continuous: int = 0,
+        branches: tuple[int, ...] = (),
+    ) -> None:
+        self.continuous, self.branches = continuous, branches
+        self.normal = Normal(loc, scale, validate_args=False) if continuous else None
+        self.categoricals: list[Distribution] = []
+        if branches:
+            assert logits is not None
+            split_logits = torch.split(logits, branches, dim=-1)
+            split_masks = (
+                torch.split(mask, branches, dim=-1) if mask is not None else [None] * len(branches)
+            )
+            self.categoricals = [
+                MaskedCategorical(logits=lg, mask=m) if m is not None else _categorical(lg)
+                for lg, m in zip(split_logits, split_masks, strict=True)
+            ]
+        reference = loc if loc is not None else logits
+        assert reference is not None
+        super().__init__(batch_shape=reference.shape[:-1], validate_args=False)
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        total = torch.zeros(value.shape[:-1], dtype=value.dtype, device=value.device)
+        if self.normal is not None:
+            total = total + self.normal.log_prob(value[..., : self.continuous]).sum(-1)
+        for index, dist in enumerate(self.categoricals):
+            total = total + dist.log_prob(value[..., self.continuous + index].long())
+        return total
+
+    def entropy(self) -> torch.Tensor:
+        total = torch.zeros(self.batch_shape)
+        if self.normal is not None:
+            total = total + self.normal.entropy().sum(-1)
+        for dist in self.categoricals:
+            total = total + dist.entropy()
+        return total
+
+    def sample(self, sample_shape: torch.Size = torch.Size()) -> torch.Tensor:  # noqa: B008
+        parts = [self.normal.sample(sample_shape)] if self.normal is not None else []
+        parts += [d.sample(sample_shape).unsqueeze(-1).float() for d in self.categoricals]
+        return torch.cat(parts, dim=-1)
+
+    @property
+    def deterministic_sample(self) -> torch.Tensor:
+        parts = [self.normal.mean] if self.normal is not None else []
+        parts += [d.probs.argmax(-1, keepdim=True).float() for d in self.categoricals]
+        return torch.cat(parts, dim=-1)
+
+
+def _categorical(logits: torch.Tensor) -> Distribution:
+    return torch.distributions.Categorical(logits=logits, validate_args=False)
+
+
+class _PolicyParams(nn.Module):
+    """Observations (one tensor per sensor, in the network's order) -> distribution params."""
+
+    def __init__(self, network: ActorCritic) -> None:
+        super().__init__()
+        self.network = network
+
+    def forward(self, *sensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        net = self.network
+        hidden = net.features(dict(zip(net.sensor_names, sensors, strict=True)))
+        out: tuple[torch.Tensor, ...] = ()
+        if net.mean is not None and net.log_std is not None:
+            loc = net.mean(hidden)
+            out += (loc, net.log_std.exp().expand_as(loc))
+        if net.logits is not None:
+            out += (net.logits(hidden),)
+        return out
+
+
+class _StateValue(nn.Module):
+    def __init__(self, network: ActorCritic) -> None:
+        super().__init__()
+        self.network = network
+
+    def forward(self, *sensors: torch.Tensor) -> torch.Tensor:
+        net = self.network
+        return net.state_value(dict(zip(net.sensor_names, sensors, strict=True))).unsqueeze(-1)
+
+
+def obs_keys(network: ActorCritic) -> list[tuple[str, str]]:
+    return [(keys.OBS, name) for name in network.sensor_names]
+
+
+def probabilistic_actor(network: ActorCritic) -> ProbabilisticTensorDictSequential:
+    """The policy as torchrl losses want it: ``get_dist(td)`` over ``FLAT_ACTION``."""
+    out_keys = (["loc", "scale"] if network.continuous else []) + (
+        ["logits"] if network.branches else []
+    )
+    dist_keys = {key: key for key in out_keys}
+    if network.branches:
+        dist_keys["mask"] = keys.ACTION_MASK
+    return ProbabilisticTensorDictSequential(
+        TensorDictModule(_PolicyParams(network), in_keys=obs_keys(network), out_keys=out_keys),
+        ProbabilisticTensorDictModule(
+            in_keys=dist_keys,
+            out_keys=[FLAT_ACTION],
+            distribution_class=ActionDistribution,
+            distribution_kwargs={"continuous": network.continuous, "branches": network.branches},
+            return_log_prob=False,
+        ),
+    )
+
+
+def value_operator(network: ActorCritic) -> TensorDictModule:
+    return TensorDictModule(
+        _StateValue(network), in_keys=obs_keys(network), out_keys=["state_value"]
+    )
+
+
+def add_flat_action(batch: TensorDictBase) -> TensorDictBase:
+    """Join ``("action", "continuous")`` and ``("action", "discrete")`` into FLAT_ACTION."""
+    parts = []
+    if (keys.ACTION, keys.CONTINUOUS) in batch.keys(True):
+        parts.append(batch[keys.ACTION, keys.CONTINUOUS])
+    if (keys.ACTION, keys.DISCRETE) in batch.keys(True):
+        parts.append(batch[keys.ACTION, keys.DISCRETE].float())
+    batch.set(FLAT_ACTION, torch.cat(parts, dim=-1))
+    return batch

@@ -1,0 +1,196 @@
+"""What a training run reports: TensorBoard event files with ML-Agents' tag names, and a
+live rich display. Driver-side only; it reads the service's metrics and the learner's
+update reports and never touches segment data.
+
+Tags (docs/training.md lists them all): ``Environment/Cumulative Reward`` and
+``Environment/Episode Length`` (episodes finished since the last summary),
+``Losses/*`` and ``Policy/*`` (means over the updates since the last summary),
+``Health/*`` (Unity restarts, dropped steps, policy lag) and ``Perf/*`` (agent steps per
+second collected, samples per second consumed by the learner). One writer per behavior,
+in ``<run dir>/<behavior>/``, as ML-Agents lays them out, so TensorBoard shows one run per
+behavior.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+from torch.utils.tensorboard import SummaryWriter
+
+from rollout.service import ServiceMetrics
+
+_RATE_TAGS = {
+    "collect": "Perf/Agent Steps per Second",
+    "learn": "Perf/Learner Samples per Second",
+}
+
+
+@dataclass
+class _Window:
+    """Per behavior: totals at the last summary and update metrics since."""
+
+    next_step: int = 0
+    episodes: int = 0
+    return_sum: float = 0.0
+    length_sum: int = 0
+    losses: dict[str, list[float]] = field(default_factory=dict)
+    last_reward: float | None = None
+    last_length: float | None = None
+
+
+class Summaries:
+    def __init__(
+        self,
+        run_dir: Path,
+        summary_freq: dict[str, int] | int,
+        progress: bool = True,
+        console: Console | None = None,
+    ) -> None:
+        self.run_dir = run_dir
+        self.summary_freq = summary_freq
+        self.writers: dict[str, SummaryWriter] = {}
+        self.windows: dict[str, _Window] = {}
+        self.console = console or Console()
+        self.live = Live(console=self.console, auto_refresh=False) if progress else None
+        self.started = time.perf_counter()
+        self.rates: dict[str, float] = {}
+        self._last_rate = (self.started, 0, 0)
+
+    def __enter__(self) -> Summaries:
+        if self.live is not None:
+            self.live.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        if self.live is not None:
+            self.live.stop()
+        for writer in self.writers.values():
+            writer.close()
+
+    def _freq(self, behavior: str) -> int:
+        if isinstance(self.summary_freq, int):
+            return self.summary_freq
+        return self.summary_freq.get(behavior, 10_000)
+
+    def observe(
+        self,
+        metrics: ServiceMetrics,
+        progress: dict[str, Any],
+        reports: list[tuple[str, int, dict[str, float]]],
+    ) -> None:
+        """Fold in the newest numbers; write a summary for each behavior past its period."""
+        now = time.perf_counter()
+        stats = progress["stats"]
+        then, steps_then, samples_then = self._last_rate
+        total = sum(progress["steps"].values())
+        if now - then >= 2.0:
+            self.rates = {
+                "collect": (total - steps_then) / (now - then),
+                "learn": (stats.samples - samples_then) / (now - then),
+            }
+            self._last_rate = (now, total, stats.samples)
+        for behavior, _, report in reports:
+            window = self._window(behavior, progress["steps"].get(behavior, 0))
+            for key, value in report.items():
+                window.losses.setdefault(key, []).append(value)
+        totals = _episode_totals(metrics)
+        for behavior, step in progress["steps"].items():
+            window = self._window(behavior, step)
+            if step >= window.next_step:
+                self._write(behavior, step, window, totals.get(behavior), metrics)
+                window.next_step = (step // self._freq(behavior) + 1) * self._freq(behavior)
+        if self.live is not None:
+            self.live.update(self._table(metrics, progress), refresh=True)
+
+    def _window(self, behavior: str, step: int) -> _Window:
+        if behavior not in self.windows:
+            freq = self._freq(behavior)
+            self.windows[behavior] = _Window(next_step=(step // freq + 1) * freq)
+        return self.windows[behavior]
+
+    def _write(
+        self,
+        behavior: str,
+        step: int,
+        window: _Window,
+        totals: tuple[int, float, int] | None,
+        metrics: ServiceMetrics,
+    ) -> None:
+        writer = self.writers.get(behavior)
+        if writer is None:
+            writer = self.writers[behavior] = SummaryWriter(str(self.run_dir / _safe(behavior)))
+        if totals is not None:
+            episodes, return_sum, length_sum = totals
+            new = episodes - window.episodes
+            if new > 0:
+                window.last_reward = (return_sum - window.return_sum) / new
+                window.last_length = (length_sum - window.length_sum) / new
+                writer.add_scalar("Environment/Cumulative Reward", window.last_reward, step)
+                writer.add_scalar("Environment/Episode Length", window.last_length, step)
+                writer.add_scalar("Environment/Episodes", new, step)
+            window.episodes, window.return_sum, window.length_sum = totals
+        for key, values in window.losses.items():
+            writer.add_scalar(key, sum(values) / len(values), step)
+        window.losses = {}
+        writer.add_scalar("Health/Unity Restarts", metrics.unity_restarts, step)
+        writer.add_scalar("Health/Worker Restarts", metrics.worker_restarts, step)
+        writer.add_scalar("Health/Dropped Steps", metrics.dropped_steps, step)
+        writer.add_scalar("Health/Policy Lag", metrics.policy_lag_mean, step)
+        for name, rate in self.rates.items():
+            writer.add_scalar(_RATE_TAGS[name], rate, step)
+        writer.flush()
+
+    def _table(self, metrics: ServiceMetrics, progress: dict[str, Any]) -> Table:
+        elapsed = time.perf_counter() - self.started
+        table = Table(
+            title=(
+                f"unity-rollout  {elapsed:6.0f}s  "
+                f"{self.rates.get('collect', 0):,.0f} steps/s  "
+                f"learner {self.rates.get('learn', 0):,.0f} samples/s  "
+                f"lag {metrics.policy_lag_mean:.2f}  restarts {metrics.unity_restarts}"
+            ),
+            title_justify="left",
+        )
+        for column in ("behavior", "step", "mean reward", "episode length", "policy version"):
+            table.add_column(column, justify="right" if column != "behavior" else "left")
+        for behavior, step in sorted(progress["steps"].items()):
+            window = self.windows.get(behavior, _Window())
+            table.add_row(
+                behavior,
+                f"{step:,}",
+                "-" if window.last_reward is None else f"{window.last_reward:.3f}",
+                "-" if window.last_length is None else f"{window.last_length:.1f}",
+                str(progress["version"]),
+            )
+        return table
+
+    def latest(self) -> dict[str, dict[str, float | None]]:
+        """Per behavior, the mean reward and episode length of the last summary."""
+        return {
+            name: {"mean_reward": w.last_reward, "episode_length": w.last_length}
+            for name, w in self.windows.items()
+        }
+
+
+def _episode_totals(metrics: ServiceMetrics) -> dict[str, tuple[int, float, int]]:
+    """Cumulative (episodes, return sum, length sum) per behavior over live workers."""
+    totals: dict[str, tuple[int, float, int]] = {}
+    for worker in metrics.workers:
+        for name, stats in worker.behaviors.items():
+            episodes, returns, lengths = totals.get(name, (0, 0.0, 0))
+            totals[name] = (
+                episodes + stats.episodes,
+                returns + stats.return_sum,
+                lengths + stats.length_sum,
+            )
+    return totals
+
+
+def _safe(behavior: str) -> str:
+    return behavior.replace("?", "_").replace("=", "")

@@ -1,0 +1,278 @@
+"""Training runs: ``build_system`` wires workers, service and learner; ``train`` drives
+them until every behavior reaches ``max_steps`` (or a time limit, or a signal).
+
+The data flow is the service's (see ``rollout/service.py``); this file adds what a run
+needs around it: the trainer config, the run directory (``<results>/<run id>/``, with
+``checkpoints/``, TensorBoard files per behavior, ``configuration.yaml`` and
+``summary.json``), checkpoints every ``checkpoint_interval`` steps and at the end,
+``--resume`` from the newest checkpoint with the step count intact, and SIGINT/SIGTERM:
+finish the current step, write a final checkpoint, stop every process.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import signal
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import ray
+import yaml
+
+from learners import checkpoint
+from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
+from learners.learner import learner_actor, policy_factory
+from rollout.service import RolloutService, ServiceConfig
+from rollout.summaries import Summaries
+from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
+
+log = logging.getLogger(__name__)
+
+
+class TrainingError(Exception):
+    """A one-line problem with the run's options, found before anything starts."""
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    env: str = "unitysim:3DBall"  # unitysim:<Env>, a path to a build, or "editor"
+    workers: int = 2
+    config: str | None = None  # ML-Agents trainer config; default: config/<Env>.yaml
+    run_id: str = "run"
+    results_dir: str = "results"
+    seed: int = 0
+    resume: bool = False
+    force: bool = False
+    max_steps: int | None = None  # overrides every behavior's max_steps
+    max_seconds: float | None = None
+    cpus: int = 2  # local mode: ray.init(num_cpus=cpus)
+    address: str | None = None  # join an existing Ray cluster instead ("auto" in a job)
+    progress: bool = True
+    num_areas: int = 1
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    run_dir: Path
+    steps: dict[str, int]
+    version: int
+    seconds: float
+    checkpoint: Path
+    interrupted: bool
+    latest: dict[str, dict[str, float | None]]
+
+
+def load_run_config(options: TrainOptions) -> RunConfig:
+    path = Path(options.config) if options.config else config_for_env(options.env)
+    try:
+        return load_config(path) if path else parse_config({}, "<defaults>")
+    except ConfigError as error:
+        raise TrainingError(str(error)) from None
+
+
+def prepare_run_dir(options: TrainOptions) -> tuple[Path, dict[str, Any] | None]:
+    """The run directory, and the checkpoint to resume from (None for a fresh run)."""
+    run_dir = Path(options.results_dir) / options.run_id
+    has_checkpoints = any((run_dir / "checkpoints").glob("*.pt"))
+    if options.resume:
+        if not has_checkpoints:
+            raise TrainingError(f"--resume: no checkpoint in {run_dir}/checkpoints to resume from")
+        return run_dir, checkpoint.load(run_dir)
+    if has_checkpoints and not options.force:
+        raise TrainingError(
+            f"{run_dir} already holds a run: pass --resume to continue it, --force to "
+            "overwrite it, or choose another --run-id"
+        )
+    return run_dir, None
+
+
+def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> UnityConfig:
+    build = None if options.env == "editor" else options.env
+    try:
+        resolve_build(build)
+    except UnityError as error:
+        raise TrainingError(str(error)) from None
+    engine_fields = {f.name for f in dataclasses.fields(EngineSettings)}
+    engine = EngineSettings(**{k: v for k, v in config.engine.items() if k in engine_fields})
+    return UnityConfig(
+        build,
+        seed=options.seed,
+        num_areas=options.num_areas,
+        engine=engine,
+        env_params=dict(config.environment_parameters),
+        log_folder=str(run_dir / "unity-logs"),
+    )
+
+
+def build_system(
+    options: TrainOptions, config: RunConfig, unity: UnityConfig, resume: dict[str, Any] | None
+) -> tuple[RolloutService, Any]:
+    """Learner actor (restored when resuming) and the service with its workers (not started)."""
+    learner = learner_actor(config, options.max_steps)
+    if resume is not None:
+        ray.get(learner.load_state_dict.remote(resume))
+    horizons = [s.time_horizon for s in config.behaviors.values()] or [config.default.time_horizon]
+    asynchronous = any(s.trainer_type == "impala" for s in config.behaviors.values())
+    service_config = ServiceConfig(
+        unity,
+        num_workers=options.workers,
+        horizon=min(horizons),
+        collects_per_worker=2 if asynchronous else 1,
+        learner_in_flight=4 if asynchronous else 2,
+        worker_cpus=1.0 if options.address else min(1.0, options.cpus / options.workers),
+    )
+    return RolloutService(service_config, policy_factory(config), learner), learner
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[list[str]]:
+    """SIGINT/SIGTERM set a flag the loop checks, so it can checkpoint before leaving."""
+    received: list[str] = []
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        received.append(signal.Signals(signum).name)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield received
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
+class Checkpoints:
+    """Periodic and final checkpoints in ``<run dir>/checkpoints``, keeping the newest N."""
+
+    def __init__(self, run_dir: Path, interval: int, keep: int, start_step: int) -> None:
+        self.directory = run_dir / "checkpoints"
+        self.interval, self.keep = max(interval, 1), max(keep, 1)
+        self.next_step = (start_step // self.interval + 1) * self.interval
+        self.last: Path | None = None
+
+    def due(self, step: int) -> bool:
+        return step >= self.next_step
+
+    def save(self, state: dict[str, Any], meta: dict[str, Any]) -> Path:
+        step = int(state["step"])
+        path = self.directory / f"step-{step:010d}.pt"
+        self.last = checkpoint.save(path, {**state, "meta": meta})
+        self.next_step = (step // self.interval + 1) * self.interval
+        for old in sorted(self.directory.glob("step-*.pt"))[: -self.keep]:
+            old.unlink(missing_ok=True)
+        return self.last
+
+
+def train(options: TrainOptions) -> TrainResult:
+    config = load_run_config(options)
+    run_dir, resume = prepare_run_dir(options)
+    unity = unity_config(options, config, run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for problem in config.unsupported:
+        log.warning("%s: not supported by unity-rollout, ignored", problem)
+    (run_dir / "configuration.yaml").write_text(
+        yaml.safe_dump(
+            {"options": dataclasses.asdict(options), "config": _plain(config)}, sort_keys=False
+        )
+    )
+    started_ray = False
+    if not ray.is_initialized():
+        if options.address:
+            ray.init(address=options.address, log_to_driver=False)
+        else:
+            ray.init(
+                num_cpus=options.cpus,
+                include_dashboard=False,
+                log_to_driver=False,
+                _node_ip_address="127.0.0.1",
+            )
+        started_ray = True
+    try:
+        return _run(options, config, unity, run_dir, resume)
+    finally:
+        if started_ray:
+            ray.shutdown()
+
+
+def _run(
+    options: TrainOptions,
+    config: RunConfig,
+    unity: UnityConfig,
+    run_dir: Path,
+    resume: dict[str, Any] | None,
+) -> TrainResult:
+    behaviors = list(config.behaviors.values()) or [config.default]
+    checkpoints = Checkpoints(
+        run_dir,
+        min(s.checkpoint_interval for s in behaviors),
+        max(s.keep_checkpoints for s in behaviors),
+        int(resume["step"]) if resume else 0,
+    )
+    summary_freq = {name: s.summary_freq for name, s in config.behaviors.items()}
+    service, learner = build_system(options, config, unity, resume)
+    started = time.perf_counter()
+    deadline = started + options.max_seconds if options.max_seconds else None
+    meta = {"env": options.env, "run_id": options.run_id}
+    progress: dict[str, Any] = {"steps": {}, "version": 0}
+    with (
+        stop_on_signals() as received,
+        service,
+        Summaries(
+            run_dir, summary_freq or config.default.summary_freq, options.progress
+        ) as summaries,
+    ):
+        while not received:
+            metrics = service.run(seconds=1.0, report_every=1.0)
+            progress = ray.get(learner.progress.remote())
+            summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
+            if checkpoints.due(sum(progress["steps"].values())):
+                checkpoints.save(ray.get(learner.state_dict.remote()), meta)
+            if progress["done"] or (deadline is not None and time.perf_counter() >= deadline):
+                break
+        final = checkpoints.save(ray.get(learner.state_dict.remote()), meta)
+        latest = summaries.latest()
+    result = TrainResult(
+        run_dir,
+        dict(progress["steps"]),
+        int(progress["version"]),
+        time.perf_counter() - started,
+        final,
+        bool(received),
+        latest,
+    )
+    (run_dir / "summary.json").write_text(
+        json.dumps(
+            {
+                "steps": sum(result.steps.values()),
+                "behaviors": {
+                    name: {"steps": steps, **latest.get(name, {})}
+                    for name, steps in result.steps.items()
+                },
+                "version": result.version,
+                "seconds": round(result.seconds, 1),
+                "checkpoint": str(final),
+                "interrupted": received[0] if received else None,
+            },
+            indent=2,
+        )
+    )
+    return result
+
+
+def _plain(config: RunConfig) -> dict[str, Any]:
+    def convert(value: Any) -> Any:
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            return {f.name: convert(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        if isinstance(value, dict | tuple | list) or hasattr(value, "items"):
+            if hasattr(value, "items"):
+                return {str(k): convert(v) for k, v in value.items()}
+            return [convert(v) for v in value]
+        return value
+
+    return convert(config)

@@ -1,0 +1,268 @@
+"""ONNX export in the ML-Agents layout (no Ray): names, constants, dynamic batch, and the
+deterministic outputs of onnxruntime against the torch policy, normalization included."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
+from mlagents_envs.base_env import ObservationType as Obs
+
+from learners import checkpoint
+from learners.checkpoint import network_settings_dict, spec_to_dict
+from learners.export import export_checkpoint, export_onnx
+from learners.policies import ActorCritic, NetworkSettings
+from rollout import cli
+
+VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
+GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
+IMAGE = ObservationSpec(
+    (3, 12, 12),
+    (
+        DimensionProperty.NONE,
+        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
+        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
+    ),
+    Obs.DEFAULT,
+    "camera",
+)
+SPECS = {
+    "continuous": BehaviorSpec([VECTOR], ActionSpec(2, ())),  # 3DBall-like
+    "discrete": BehaviorSpec([VECTOR], ActionSpec(0, (3, 4, 2))),
+    "hybrid": BehaviorSpec([VECTOR, GRID], ActionSpec(2, (3, 2))),
+    "image": BehaviorSpec([IMAGE, VECTOR], ActionSpec(1, (4,))),
+}
+SETTINGS = NetworkSettings(hidden_units=32, num_layers=2, normalize=True)
+
+
+def observations(spec: BehaviorSpec, n: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        o.name: (rng.normal(size=(n, *o.shape)) * 3 + 2).astype(np.float32)
+        for o in spec.observation_specs
+    }
+
+
+def build_network(spec: BehaviorSpec, seed: int = 0) -> ActorCritic:
+    """Heads with large weights (so clipping and argmax matter) and shifted statistics."""
+    torch.manual_seed(seed)
+    network = ActorCritic(spec, SETTINGS)
+    with torch.no_grad():
+        for head in (network.mean, network.logits):
+            if head is not None:
+                torch.nn.init.normal_(head.weight, std=1.0)
+                torch.nn.init.normal_(head.bias, std=0.5)
+        if network.log_std is not None:
+            network.log_std.fill_(math.log(0.1))
+    network.update_normalization(
+        {k: torch.from_numpy(v) for k, v in observations(spec, 256, seed=99).items()}
+    )
+    return network
+
+
+def masks(spec: BehaviorSpec, n: int, seed: int = 0) -> np.ndarray:
+    """Random masks (True = allowed) with at least one allowed action per branch."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for size in spec.action_spec.discrete_branches:
+        part = rng.random((n, size)) < 0.6
+        part[np.arange(n), rng.integers(0, size, n)] = True
+        parts.append(part)
+    return np.concatenate(parts, axis=1)
+
+
+def feeds(spec: BehaviorSpec, obs: dict[str, np.ndarray], mask: np.ndarray | None) -> dict:
+    feed = {f"obs_{i}": obs[o.name] for i, o in enumerate(spec.observation_specs)}
+    if spec.action_spec.discrete_branches:
+        assert mask is not None
+        feed["action_masks"] = mask.astype(np.float32)  # ML-Agents: 1.0 = allowed
+    return feed
+
+
+def session(path: Path) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = 1
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def run(sess: ort.InferenceSession, feed: dict) -> dict[str, np.ndarray]:
+    return dict(zip([o.name for o in sess.get_outputs()], sess.run(None, feed), strict=True))
+
+
+def torch_deterministic(
+    network: ActorCritic, obs: dict[str, np.ndarray], mask: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    tensors = {k: torch.from_numpy(v) for k, v in obs.items()}
+    torch_mask = torch.from_numpy(mask) if mask is not None else None
+    continuous, discrete, _ = network.act(tensors, torch_mask, deterministic=True)
+    return continuous.clamp(-1.0, 1.0).numpy(), discrete.numpy()
+
+
+@pytest.mark.parametrize("kind", list(SPECS))
+def test_exported_graph_matches_the_policy(tmp_path, kind):
+    spec = SPECS[kind]
+    network = build_network(spec)
+    path = export_onnx(network, tmp_path / f"{kind}.onnx")
+    model = onnx.load(str(path))
+    onnx.checker.check_model(model, full_check=True)
+
+    has_continuous = spec.action_spec.continuous_size > 0
+    branches = list(spec.action_spec.discrete_branches)
+    expected_inputs = [f"obs_{i}" for i in range(len(spec.observation_specs))]
+    expected_outputs = ["version_number", "memory_size"]
+    if has_continuous:
+        expected_outputs += [
+            "continuous_actions",
+            "continuous_action_output_shape",
+            "deterministic_continuous_actions",
+        ]
+    if branches:
+        expected_inputs.append("action_masks")
+        expected_outputs += [
+            "discrete_actions",
+            "discrete_action_output_shape",
+            "deterministic_discrete_actions",
+        ]
+    assert [i.name for i in model.graph.input] == expected_inputs
+    assert [o.name for o in model.graph.output] == expected_outputs
+    for value, obs_spec in zip(model.graph.input, spec.observation_specs, strict=False):
+        dims = [d.dim_param or d.dim_value for d in value.type.tensor_type.shape.dim]
+        assert dims == ["batch", *obs_spec.shape]  # images NCHW, as the spec (C, H, W)
+        assert value.type.tensor_type.elem_type == onnx.TensorProto.FLOAT
+
+    sess = session(path)
+    for n in (1, 7):
+        obs = observations(spec, n, seed=n)
+        mask = masks(spec, n, seed=n) if branches else None
+        out = run(sess, feeds(spec, obs, mask))
+        np.testing.assert_array_equal(out["version_number"], np.array([3.0], np.float32))
+        np.testing.assert_array_equal(out["memory_size"], np.array([0.0], np.float32))
+        assert out["version_number"].dtype == out["memory_size"].dtype == np.float32
+        continuous, discrete = torch_deterministic(network, obs, mask)
+        if has_continuous:
+            size = spec.action_spec.continuous_size
+            np.testing.assert_array_equal(out["continuous_action_output_shape"], [float(size)])
+            assert out["continuous_actions"].shape == (n, size)
+            assert out["continuous_actions"].dtype == np.float32
+            assert np.abs(out["continuous_actions"]).max() <= 1.0
+            np.testing.assert_allclose(
+                out["deterministic_continuous_actions"], continuous, rtol=0, atol=1e-5
+            )
+        if branches:
+            np.testing.assert_array_equal(out["discrete_action_output_shape"], [branches])
+            assert out["discrete_action_output_shape"].dtype == np.float32
+            assert out["discrete_actions"].shape == (n, len(branches))
+            assert out["deterministic_discrete_actions"].dtype == np.int64
+            np.testing.assert_array_equal(out["deterministic_discrete_actions"], discrete)
+
+    # The comparison is sensitive to normalization: without it the actions differ.
+    plain = build_network(spec)
+    for encoder in plain.encoders:
+        if encoder.norm is not None:
+            encoder.norm.mean.zero_()
+            encoder.norm.var.fill_(1.0)
+    obs = observations(spec, 64, seed=5)
+    mask = masks(spec, 64, seed=5) if branches else None
+    changed_c, changed_d = torch_deterministic(plain, obs, mask)
+    real_c, real_d = torch_deterministic(network, obs, mask)
+    assert np.abs(changed_c - real_c).max(initial=0) > 1e-3 or (changed_d != real_d).any()
+
+
+@pytest.mark.parametrize("kind", ["continuous", "discrete", "hybrid"])
+def test_stochastic_outputs_respect_masks_and_spread(tmp_path, kind):
+    spec = SPECS[kind]
+    network = build_network(spec, seed=3)
+    if network.mean is not None:  # means inside (-1, 1), so samples spread around them
+        torch.nn.init.normal_(network.mean.weight.data, std=0.05)
+        network.mean.bias.data.zero_()
+    sess = session(export_onnx(network, tmp_path / "policy.onnx"))
+    n = 4000
+    obs = {k: np.repeat(v, n, axis=0) for k, v in observations(spec, 1, seed=4).items()}
+    mask = masks(spec, n, seed=4) if spec.action_spec.discrete_branches else None
+    out = run(sess, feeds(spec, obs, mask))
+    offset = 0
+    for branch, size in enumerate(spec.action_spec.discrete_branches):
+        assert mask is not None
+        chosen = out["discrete_actions"][:, branch]
+        assert ((chosen >= 0) & (chosen < size)).all()
+        assert mask[np.arange(n), offset + chosen].all(), "a masked action was sampled"
+        assert len(np.unique(chosen)) > 1  # sampled, not the argmax
+        offset += size
+    if spec.action_spec.continuous_size:
+        samples = out["continuous_actions"]
+        deterministic = out["deterministic_continuous_actions"][0]
+        assert np.abs(deterministic).max() < 0.6  # away from the clip: sample mean ~ mean
+        np.testing.assert_allclose(samples.std(0), 0.1, rtol=0.1)  # exp(log_std)
+        np.testing.assert_allclose(samples.mean(0), deterministic, rtol=0, atol=0.02)
+
+
+def write_checkpoint(run_dir: Path) -> tuple[Path, dict[str, ActorCritic]]:
+    networks = {
+        "3DBall?team=0": build_network(SPECS["continuous"], seed=1),
+        "Grid?team=0": build_network(SPECS["image"], seed=2),
+    }
+    behaviors = {
+        name: {
+            "spec": spec_to_dict(net.spec),
+            "network_settings": network_settings_dict(SETTINGS),
+            "network": net.state_dict(),
+            "algorithm": {},
+        }
+        for name, net in networks.items()
+    }
+    path = checkpoint.save(
+        run_dir / "checkpoints" / "step_100.pt",
+        {"step": 100, "version": 3, "meta": {}, "behaviors": behaviors},
+    )
+    return path, networks
+
+
+def test_export_checkpoint_writes_one_file_per_behavior(tmp_path):
+    run_dir = tmp_path / "run"
+    path, networks = write_checkpoint(run_dir)
+    written = export_checkpoint(run_dir)
+    exported = run_dir / "exported"
+    assert sorted(written) == sorted(
+        [exported / "3DBall_team=0.onnx", exported / "Grid_team=0.onnx"]
+    )
+    for name, network in networks.items():
+        spec = network.spec
+        obs = observations(spec, 5, seed=8)
+        mask = masks(spec, 5, seed=8) if spec.action_spec.discrete_branches else None
+        out = run(session(exported / f"{name.replace('?', '_')}.onnx"), feeds(spec, obs, mask))
+        continuous, discrete = torch_deterministic(network, obs, mask)
+        np.testing.assert_allclose(
+            out["deterministic_continuous_actions"], continuous, rtol=0, atol=1e-5
+        )
+        if mask is not None:
+            np.testing.assert_array_equal(out["deterministic_discrete_actions"], discrete)
+    elsewhere = export_checkpoint(path, tmp_path / "out")
+    assert sorted(p.name for p in elsewhere) == ["3DBall_team=0.onnx", "Grid_team=0.onnx"]
+    assert all(p.parent == tmp_path / "out" for p in elsewhere)
+
+
+def test_cli_export(tmp_path, capsys):
+    path, _ = write_checkpoint(tmp_path / "run")
+    assert cli.main(["export", str(path), "--out", str(tmp_path / "onnx")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert sorted(Path(line) for line in lines) == sorted(
+        [tmp_path / "onnx" / "3DBall_team=0.onnx", tmp_path / "onnx" / "Grid_team=0.onnx"]
+    )
+    assert all(Path(line).is_file() for line in lines)
+
+
+@pytest.mark.parametrize("bad", ["missing.pt", "empty_dir", "garbage.pt"])
+def test_cli_export_bad_source(tmp_path, capsys, bad):
+    (tmp_path / "empty_dir").mkdir()
+    (tmp_path / "garbage.pt").write_text("not a checkpoint\n")
+    assert cli.main(["export", str(tmp_path / bad)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert len(captured.err.strip().splitlines()) == 1
+    assert captured.err.startswith("error:")
