@@ -9,7 +9,7 @@ venv:
 	@scripts/setup-venv.sh
 
 run: venv
-	$(VENV)/bin/unity-rollout $(if $(ARGS),$(ARGS),collect)
+	$(VENV)/bin/unity-rollout $(if $(ARGS),$(ARGS),train)
 
 lint: venv
 	$(VENV)/bin/ruff check .

@@ -1,0 +1,34 @@
+"""Synthetic segments in the worker format (docs/batch-format.md), for learner tests."""
+
+from __future__ import annotations
+
+import torch
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
+from mlagents_envs.base_env import ObservationType as Obs
+from tensordict import TensorDict
+
+from rollout import keys
+from rollout.specs import spec_to_dict, step_spec
+
+
+def vector_spec(size: int = 4, continuous: int = 0, branches: tuple[int, ...] = ()) -> BehaviorSpec:
+    sensor = ObservationSpec((size,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
+    return BehaviorSpec([sensor], ActionSpec(continuous, branches))
+
+
+def segment(
+    spec: BehaviorSpec, rows: int, steps: int, behavior: str = "B?team=0", seed: int = 0
+) -> TensorDict:
+    """Random but well-formed rows: all valid, no episode end, every action allowed."""
+    torch.manual_seed(seed)
+    batch = step_spec(spec).expand(rows, steps).rand()
+    batch[keys.VALID] = torch.ones(rows, steps, dtype=torch.bool)
+    for flag in (keys.DONE, keys.TERMINATED, keys.TRUNCATED):
+        batch[keys.NEXT, flag] = torch.zeros(rows, steps, 1, dtype=torch.bool)
+    if spec.action_spec.discrete_branches:
+        batch[keys.ACTION_MASK] = torch.ones_like(batch[keys.ACTION_MASK])
+    batch[keys.POLICY_VERSION] = torch.zeros(rows, steps, dtype=torch.int64)
+    batch[keys.LOG_PROB] = torch.full((rows, steps), -1.0)
+    batch.set_non_tensor(keys.BEHAVIOR, behavior)
+    batch.set_non_tensor(keys.SPEC, spec_to_dict(spec))
+    return batch

@@ -1,0 +1,144 @@
+"""The main job end to end, in local 2-core mode on unitysim 3DBall: a short run learns
+(clearly beats the random policy), resume continues the step count, the trained policy
+exports to ONNX and runs in onnxruntime, and SIGINT/SIGTERM stop a run with a final
+checkpoint and no process left."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import psutil
+import pytest
+import torch
+
+from learners import checkpoint
+from learners.export import export_checkpoint
+from rollout.train import TrainingError, TrainOptions, train
+
+pytestmark = pytest.mark.integration
+
+RANDOM_3DBALL_RETURN = 2.0  # a random policy drops the ball after ~20 decisions
+
+
+@pytest.fixture(scope="module")
+def trained(ray_session, tmp_path_factory):
+    results = tmp_path_factory.mktemp("results")
+    options = TrainOptions(
+        results_dir=str(results), run_id="ball", max_steps=60_000, progress=False
+    )
+    return options, train(options)
+
+
+def test_a_short_run_beats_the_random_policy(trained):
+    _, result = trained
+    reward = result.latest["3DBall?team=0"]["mean_reward"]
+    assert reward is not None and reward > 5 * RANDOM_3DBALL_RETURN
+    summary = json.loads((result.run_dir / "summary.json").read_text())
+    assert summary["steps"] >= 60_000 and summary["interrupted"] is None
+    events = list((result.run_dir / "3DBall_team0").glob("events.out.tfevents.*"))
+    assert events, "TensorBoard events per behavior"
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tags = EventAccumulator(str(events[0].parent)).Reload().Tags()["scalars"]
+    for tag in (
+        "Environment/Cumulative Reward",
+        "Environment/Episode Length",
+        "Losses/Policy Loss",
+        "Losses/Value Loss",
+        "Policy/Entropy",
+        "Policy/Learning Rate",
+        "Health/Policy Lag",
+        "Perf/Agent Steps per Second",
+    ):
+        assert tag in tags, tag
+
+
+def test_resume_continues_the_step_count(trained, ray_session):
+    options, first = trained
+    with pytest.raises(TrainingError, match="--resume"):
+        train(options)  # the run exists: refuse to overwrite it silently
+    resumed = train(
+        TrainOptions(
+            results_dir=options.results_dir,
+            run_id=options.run_id,
+            resume=True,
+            max_steps=80_000,
+            progress=False,
+        )
+    )
+    steps, first_steps = sum(resumed.steps.values()), sum(first.steps.values())
+    assert 80_000 <= steps < first_steps + 40_000, "continued from the checkpoint, not from 0"
+    assert resumed.version > first.version
+    assert checkpoint.load(resumed.checkpoint)["step"] == steps
+    with pytest.raises(TrainingError, match="no checkpoint"):
+        train(TrainOptions(results_dir=options.results_dir, run_id="nothing", resume=True))
+
+
+def test_the_trained_policy_exports_and_runs_in_onnxruntime(trained, tmp_path):
+    _, result = trained
+    (path,) = export_checkpoint(result.checkpoint, tmp_path)
+    network = checkpoint.networks(checkpoint.load(result.checkpoint))["3DBall?team=0"]
+    obs = np.random.default_rng(0).normal(size=(5, 8)).astype(np.float32)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    (actions,) = session.run(["deterministic_continuous_actions"], {"obs_0": obs})
+    with torch.no_grad():
+        expected, _, _ = network.act({network.sensor_names[0]: torch.from_numpy(obs)}, None, True)
+    np.testing.assert_allclose(actions, expected.clamp(-1, 1).numpy(), atol=1e-5)
+
+
+def run_marked(marker: str) -> list[psutil.Process]:
+    found = []
+    for process in psutil.process_iter():
+        try:
+            if process.environ().get("UNITY_ROLLOUT_TEST_RUN") == marker:
+                found.append(process)
+        except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
+            continue
+    return found
+
+
+@pytest.mark.parametrize("how", ["SIGTERM to the driver", "SIGINT to the process group"])
+def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
+    marker = uuid.uuid4().hex
+    env = {**os.environ, "UNITY_ROLLOUT_TEST_RUN": marker}
+    command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress"]
+    command += ["--results-dir", str(tmp_path), "--max-seconds", "300"]
+    driver = subprocess.Popen(
+        command, env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+    )
+    try:
+        run_dir = Path(tmp_path) / "run"
+        deadline = time.monotonic() + 120
+        while not list((run_dir / "3DBall_team0").glob("events.*")):  # training has begun
+            assert driver.poll() is None, driver.stdout.read().decode() if driver.stdout else ""
+            assert time.monotonic() < deadline, "training did not start"
+            time.sleep(0.5)
+        if how.startswith("SIGTERM"):
+            driver.send_signal(signal.SIGTERM)
+        else:
+            os.killpg(driver.pid, signal.SIGINT)
+        output, _ = driver.communicate(timeout=90)
+        assert driver.returncode == 0, output.decode()[-2000:]
+        summary = json.loads((run_dir / "summary.json").read_text())
+        assert summary["interrupted"] == how.split()[0]
+        final = checkpoint.load(summary["checkpoint"])
+        assert final["step"] == summary["steps"] > 0
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+            driver.wait()
+    deadline = time.monotonic() + 30
+    while (left := run_marked(marker)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for process in left:
+        process.kill()
+    assert not left, f"processes of the run outlived it: {[p.cmdline()[:3] for p in left]}"
