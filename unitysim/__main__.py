@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 from unitysim.envs import NAMES
 from unitysim.faults import Faults
+from unitysim.player import CLIENT_VARIABLE, CLIENTS, Player, PlayerConfig
 
 EDITOR_PORT = 5004
 
@@ -41,8 +42,6 @@ def _logging(log_file: str | None) -> None:
 
 
 def _play(args: argparse.Namespace, port: int, watch_parent: bool) -> int:
-    from unitysim.player import Player, PlayerConfig
-
     _logging(args.log_file)
     config = PlayerConfig(
         env_name=args.env,
@@ -50,6 +49,7 @@ def _play(args: argparse.Namespace, port: int, watch_parent: bool) -> int:
         connect_timeout=args.connect_timeout,
         faults=Faults.from_arguments(args),
         watch_parent=watch_parent,
+        client=args.grpc_client,
     )
     logging.getLogger("unitysim").info("unitysim %s starting: %s", args.env, sys.argv[1:])
     return Player(config).run()
@@ -95,6 +95,12 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument("-logFile", "--log-file", dest="log_file", help="player log file")
         sub.add_argument(
             "--connect-timeout", type=float, default=30.0, help="seconds to wait for a trainer"
+        )
+        sub.add_argument(
+            "--grpc-client",
+            choices=CLIENTS,
+            default=os.environ.get(CLIENT_VARIABLE) or CLIENTS[0],
+            help=f"gRPC client: our HTTP/2 one or grpcio's (default: ${CLIENT_VARIABLE} or h2)",
         )
         Faults.add_arguments(sub)
 

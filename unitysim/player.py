@@ -26,11 +26,14 @@ from unitysim import messages, wire
 from unitysim.envs import load
 from unitysim.envs.base import AgentInfos, Behavior, Output, Parameters, SimEnv
 from unitysim.faults import Faults
+from unitysim.h2client import H2Channel
 from unitysim.side_channels import SideChannels, encode_stats, frame
 
 log = logging.getLogger("unitysim")
 
 EXCHANGE = "/communicator_objects.UnityToExternalProto/Exchange"
+CLIENTS = ("h2", "grpcio")  # the gRPC client: our own HTTP/2 one (default), or grpcio's
+CLIENT_VARIABLE = "UNITYSIM_GRPC_CLIENT"
 CRASH_EXIT_CODE = 3
 OVERSIZE_BYTES = 4 * 1024 * 1024 + 64 * 1024
 _OVERSIZE_CHANNEL = uuid.UUID("00000000-0000-0000-0000-00000000beef")
@@ -43,6 +46,7 @@ class PlayerConfig:
     connect_timeout: float = 30.0
     faults: Faults = field(default_factory=Faults)
     watch_parent: bool = True
+    client: str = "h2"
 
 
 class Session:
@@ -86,23 +90,41 @@ class Player:
         """Play one session; the return value is the process exit code."""
         if self.config.watch_parent:
             _start_parent_watchdog()
-        target = f"localhost:{self.config.port}"
-        options = [("grpc.enable_http_proxy", 0), ("grpc.max_receive_message_length", -1)]
-        with grpc.insecure_channel(target, options=options) as channel:
-            exchange: Callable[..., messages.UnityMessageProto] = channel.unary_unary(
-                EXCHANGE,
-                request_serializer=wire.to_bytes,  # steps are sent as encoded bytes
-                response_deserializer=messages.UnityMessageProto.FromString,
-            )
-            try:
-                return self._play(exchange)
-            except grpc.RpcError as error:
-                code = error.code() if hasattr(error, "code") else None
-                if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
-                    log.error("message rejected as too large, disconnecting: %s", error)
-                    return 1
-                log.info("connection to the trainer ended (%s): quitting", code)
-                return 0
+        if self.config.client not in CLIENTS:
+            raise ValueError(f"unknown gRPC client {self.config.client!r}; choose from {CLIENTS}")
+        if self.config.client == "grpcio":
+            target = f"localhost:{self.config.port}"
+            options = [("grpc.enable_http_proxy", 0), ("grpc.max_receive_message_length", -1)]
+            with grpc.insecure_channel(target, options=options) as channel:
+                exchange: Callable[..., messages.UnityMessageProto] = channel.unary_unary(
+                    EXCHANGE,
+                    request_serializer=wire.to_bytes,  # steps are sent as encoded bytes
+                    response_deserializer=messages.UnityMessageProto.FromString,
+                )
+                return self._guarded(exchange)
+        with H2Channel("localhost", self.config.port, EXCHANGE) as h2:
+            parse = messages.UnityMessageProto.FromString
+
+            def h2_exchange(
+                message: messages.UnityMessageProto | bytes,
+                wait_for_ready: bool = False,
+                timeout: float | None = None,
+            ) -> messages.UnityMessageProto:
+                return parse(h2.call(wire.to_bytes(message), timeout, wait_for_ready))
+
+            return self._guarded(h2_exchange)
+
+    def _guarded(self, exchange: Callable[..., messages.UnityMessageProto]) -> int:
+        """Play; an RPC error ends the session (exit 1 if our message was too large)."""
+        try:
+            return self._play(exchange)
+        except grpc.RpcError as error:
+            code = error.code() if hasattr(error, "code") else None
+            if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
+                log.error("message rejected as too large, disconnecting: %s", error)
+                return 1
+            log.info("connection to the trainer ended (%s): quitting", code)
+            return 0
 
     def _play(self, exchange: Callable[..., messages.UnityMessageProto]) -> int:
         version = self.faults.communication_version or messages.COMMUNICATION_VERSION
