@@ -10,7 +10,7 @@ cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3.11}
 VENV=${VENV:-.venv}
-EXTRAS=${EXTRAS:-dev}
+EXTRAS=${EXTRAS-dev}  # EXTRAS= (empty): runtime only
 inputs=(pyproject.toml constraints.txt scripts/setup-venv.sh)
 want="$(cat "${inputs[@]}" | sha256sum | cut -c1-16)-$EXTRAS"
 
@@ -23,7 +23,9 @@ if [[ ! -x "$VENV/bin/python" ]]; then
 fi
 echo "setup-venv: installing pinned dependencies into $VENV" >&2
 pip=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
-"${pip[@]}" install -c constraints.txt -e ".[$EXTRAS]" 2> >(grep -v "is ignored: it is neither a file" >&2)
+target="."
+[[ -n "$EXTRAS" ]] && target=".[$EXTRAS]"  # the image installs without the dev extras
+"${pip[@]}" install -c constraints.txt -e "$target" 2> >(grep -v "is ignored: it is neither a file" >&2)
 "${pip[@]}" install -c constraints.txt --no-deps --ignore-requires-python mlagents-envs \
     2> >(grep -v "is ignored: it is neither a file" >&2)
 "$VENV/bin/python" -c "import rollout.compat as c; c.install(); import mlagents_envs.environment"

@@ -1,0 +1,270 @@
+"""Private Ray clusters for the deploy tests: `ray start --block` processes of our own.
+
+Other sessions run Ray on the same machine, so nothing here may touch them: no ``ray stop``,
+no default ports. Each node gets explicit ports on 127.0.0.1
+(``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` is Ray's switch that keeps the node IP, and so
+every listener, on loopback), a short temp dir
+of its own (Unix socket paths are limited to 107 bytes), token auth with a test-generated
+token in the environment (``~/.ray/auth_token`` is never read or written), and a tag in the
+environment that every process of the cluster inherits: stopping signals the node's process
+group, then SIGKILLs whatever still carries the tag, and reports anything that survives.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import random
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import psutil
+
+VENV_BIN = Path(sys.executable).parent
+RAY = str(VENV_BIN / "ray")
+CLUSTER_TAG = "UNITY_ROLLOUT_DEPLOY_CLUSTER"
+LOOPBACK = "127.0.0.1"
+
+
+def free_ports(count: int) -> list[int]:
+    """``count`` distinct ports nothing listens on right now (held open together)."""
+    with contextlib.ExitStack() as stack:
+        ports = []
+        for _ in range(count):
+            probe = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
+            probe.bind((LOOPBACK, 0))
+            ports.append(probe.getsockname()[1])
+    return ports
+
+
+def _is_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind(("0.0.0.0", port))
+        except OSError:
+            return False
+    return True
+
+
+def worker_port_window(size: int = 64) -> tuple[int, int]:
+    """A window of ``size`` free ports inside Ray's worker-port range (10002-19999)."""
+    for _ in range(200):
+        start = random.randrange(10002, 19999 - size)
+        if all(_is_free(p) for p in range(start, start + size)):
+            return start, start + size - 1
+    raise RuntimeError("no free window of Ray worker ports")
+
+
+def new_token() -> str:
+    return secrets.token_hex(32)  # what `ray get-auth-token --generate` makes
+
+
+def auth_env(token: str | None) -> dict[str, str]:
+    """The environment of a Ray process or submitter with (or, for None, without) the token."""
+    # Not the test session's tag either: Ray's helpers (client server, resource tracker) do
+    # not look like Ray to tests/conftest.py; CLUSTER_TAG is this cluster's own leak check.
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if not k.startswith("RAY_") and k != "UNITY_ROLLOUT_TEST_SESSION"
+    }
+    env["PATH"] = f"{VENV_BIN}{os.pathsep}{env.get('PATH', '')}"
+    if token is None:
+        env["RAY_AUTH_MODE"] = "disabled"  # and no token anywhere: sends no credentials
+    else:
+        env.update(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=token)
+    return env
+
+
+@dataclass
+class RayNode:
+    """One `ray start --block` node (its process group) of a private test cluster."""
+
+    name: str
+    process: subprocess.Popen
+    temp_dir: Path
+    log_path: Path
+    tag: str
+    ports: dict[str, int] = field(default_factory=dict)
+
+    def log(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")[-4000:]
+        except OSError:
+            return ""
+
+
+def start_node(
+    name: str,
+    token: str,
+    tag: str,
+    head_address: str | None = None,
+    num_cpus: int = 1,
+    extra_env: dict[str, str] | None = None,
+    loopback: bool = False,
+) -> RayNode:
+    """Start a head (``head_address`` None) or a worker node; returns once it is up."""
+    temp_dir = Path(tempfile.mkdtemp(prefix=f"ur-{name}-", dir="/tmp"))
+    names = ["gcs", "dashboard", "client", "node_manager", "object_manager", "agent_grpc"]
+    names += ["agent_http", "runtime_env_agent", "metrics", "autoscaler_metrics"]
+    names += ["dashboard_metrics"]
+    ports = dict(zip(names, free_ports(len(names)), strict=True))
+    low, high = worker_port_window()
+    ports.update(min_worker=low, max_worker=high)
+    env = auth_env(token)
+    if loopback:
+        # Node IP 127.0.0.1, so every port on loopback: single-node clusters only (in this
+        # mode Ray refuses a second node, and rewrites a 127.0.0.1 --address to the
+        # machine's address anyway).
+        env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    env.update(
+        AUTOSCALER_METRIC_PORT=str(ports["autoscaler_metrics"]),  # fixed 44217 by default
+        DASHBOARD_METRIC_PORT=str(ports["dashboard_metrics"]),  # fixed 44227 by default
+        **{CLUSTER_TAG: tag},
+        **(extra_env or {}),
+    )
+    command = [RAY, "start", "--block", "--disable-usage-stats", f"--num-cpus={num_cpus}"]
+    command += [
+        f"--node-ip-address={LOOPBACK}",
+        f"--node-manager-port={ports['node_manager']}",
+        f"--object-manager-port={ports['object_manager']}",
+        f"--min-worker-port={low}",
+        f"--max-worker-port={high}",
+        f"--dashboard-agent-grpc-port={ports['agent_grpc']}",
+        f"--dashboard-agent-listen-port={ports['agent_http']}",
+        f"--runtime-env-agent-port={ports['runtime_env_agent']}",
+        f"--metrics-export-port={ports['metrics']}",
+        f"--temp-dir={temp_dir}",
+        "--object-store-memory=200000000",
+    ]
+    if head_address is None:
+        command += [
+            "--head",
+            f"--port={ports['gcs']}",
+            "--include-dashboard=true",
+            f"--dashboard-host={LOOPBACK}",
+            f"--dashboard-port={ports['dashboard']}",
+            f"--ray-client-server-port={ports['client']}",
+        ]
+    else:
+        command.append(f"--address={head_address}")
+    log_path = temp_dir / "ray-start.log"
+    with log_path.open("w") as log:
+        process = subprocess.Popen(
+            command,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,  # its own process group: we stop it and nothing else
+        )
+    node = RayNode(name, process, temp_dir, log_path, tag, ports)
+    deadline = time.monotonic() + 60
+    while "Ray runtime started" not in node.log():
+        if process.poll() is not None or time.monotonic() > deadline:
+            failure = node.log()
+            stop_nodes([node])
+            raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}")
+        time.sleep(0.25)
+    return node
+
+
+def cluster_processes(tag: str) -> list[psutil.Process]:
+    """Live (non-zombie) processes carrying the cluster's tag."""
+    found = []
+    for process in psutil.process_iter(["pid", "status"]):
+        if process.info["status"] == psutil.STATUS_ZOMBIE or process.pid == os.getpid():
+            continue
+        try:
+            if process.environ().get(CLUSTER_TAG) == tag:
+                found.append(process)
+        except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
+            continue
+    return found
+
+
+def _signal_group(node: RayNode, signum: int) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(node.process.pid, signum)
+
+
+def stop_nodes(nodes: list[RayNode], grace_s: float = 5.0) -> list[str]:
+    """Stop the nodes (workers first): SIGTERM each group, SIGKILL what remains after
+    ``grace_s``; returns descriptions of processes still alive after that (should be none)."""
+    for node in reversed(nodes):
+        _signal_group(node, signal.SIGTERM)
+    tags = {node.tag for node in nodes}
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and any(cluster_processes(t) for t in tags):
+        time.sleep(0.25)
+    for node in nodes:
+        _signal_group(node, signal.SIGKILL)
+    for tag in tags:
+        for process in cluster_processes(tag):  # e.g. a process that left the group
+            with contextlib.suppress(psutil.NoSuchProcess):
+                process.kill()
+    for node in nodes:
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            node.process.wait(timeout=10)
+    time.sleep(0.5)
+    left = []
+    for tag in tags:
+        for process in cluster_processes(tag):
+            with contextlib.suppress(psutil.NoSuchProcess):
+                left.append(f"{process.pid}: {' '.join(process.cmdline())[:160]}")
+    by_path = [
+        f"{p.pid}: {' '.join(p.info['cmdline'] or [])[:160]}"
+        for p in psutil.process_iter(["pid", "cmdline", "status"])
+        if p.info["status"] != psutil.STATUS_ZOMBIE
+        and any(str(node.temp_dir) in arg for node in nodes for arg in p.info["cmdline"] or [])
+    ]
+    for node in nodes:
+        shutil.rmtree(node.temp_dir, ignore_errors=True)
+    return left + [entry for entry in by_path if entry not in left]
+
+
+@contextlib.contextmanager
+def private_cluster(
+    token: str, node_cpus: list[int], node_env: list[dict[str, str]] | None = None
+) -> Iterator[list[RayNode]]:
+    """A head plus ``len(node_cpus) - 1`` worker nodes; always stopped, and checked gone.
+    A single node listens on 127.0.0.1 only; nodes of a multi-node cluster on the machine's
+    address (as separate machines would), token auth protecting them."""
+    tag = uuid.uuid4().hex
+    nodes: list[RayNode] = []
+    node_env = node_env or [{} for _ in node_cpus]
+    try:
+        loopback = len(node_cpus) == 1
+        head = start_node("head", token, tag, None, node_cpus[0], node_env[0], loopback)
+        nodes.append(head)
+        address = f"{LOOPBACK}:{head.ports['gcs']}"
+        for index, cpus in enumerate(node_cpus[1:], start=1):
+            nodes.append(
+                start_node(f"w{index}", token, tag, address, cpus, extra_env=node_env[index])
+            )
+        yield nodes
+    finally:
+        left = stop_nodes(nodes) if nodes else []
+        assert not left, f"processes of the private Ray cluster survived: {left}"
+
+
+def listening_addresses(tag: str) -> dict[str, list[str]]:
+    """Local addresses (ip:port) the cluster's processes listen on, by process name."""
+    found: dict[str, list[str]] = {}
+    for process in cluster_processes(tag):
+        with contextlib.suppress(psutil.NoSuchProcess, psutil.AccessDenied):
+            for conn in process.net_connections(kind="tcp"):
+                if conn.status == psutil.CONN_LISTEN:
+                    found.setdefault(process.name(), []).append(
+                        f"{conn.laddr.ip}:{conn.laddr.port}"
+                    )
+    return found
