@@ -82,6 +82,8 @@ def run_one(run: Run, results: Path) -> dict:
     rewards = scalars(run_dir, "Environment/Cumulative Reward")
     collect = [v for _, _, v in scalars(run_dir, "Perf/Agent Steps per Second")]
     learn = [v for _, _, v in scalars(run_dir, "Perf/Learner Samples per Second")]
+    capacity = [v for _, _, v in scalars(run_dir, "Perf/Learner Samples per Busy Second")]
+    busy = [v for _, _, v in scalars(run_dir, "Perf/Learner Busy Fraction")]
     start = min((t for t, _, _ in rewards), default=0.0)
     first_log = json.loads((run_dir / "summary.json").read_text())
     reached = next(((t - start, s) for t, s, v in rewards if v >= run.target), None)
@@ -96,6 +98,8 @@ def run_one(run: Run, results: Path) -> dict:
         "reached_at_step": None if reached is None else reached[1],
         "collect_steps_per_s": sum(collect) / len(collect) if collect else None,
         "learner_samples_per_s": sum(learn) / len(learn) if learn else None,
+        "learner_samples_per_busy_s": sum(capacity) / len(capacity) if capacity else None,
+        "learner_busy_fraction": sum(busy) / len(busy) if busy else None,
         "curve": [(round(t - start, 1), s, v) for t, s, v in rewards],
     }
 

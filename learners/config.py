@@ -215,11 +215,11 @@ NETWORK: dict[str, Check] = {
     "hidden_units": POSITIVE_INT,
     "num_layers": POSITIVE_INT,
     "normalize": _bool,
+    "goal_conditioning_type": _choice("hyper", "none"),
 }
 NETWORK_UNSUPPORTED: dict[str, object] = {
     "vis_encode_type": "simple",
     "memory": None,
-    "goal_conditioning_type": "none",  # we feed goal signals in as ordinary inputs
     "deterministic": False,
 }
 TOP: dict[str, Check] = {

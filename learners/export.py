@@ -6,7 +6,9 @@ float, 1 = allowed), and the outputs Unity's ``SentisModelParamLoader`` reads: t
 constants ``version_number`` (3) and ``memory_size`` (0), the action-size constants, the
 stochastic actions sampled inside the graph (as ML-Agents does) and their deterministic
 twins. Continuous actions are clipped to [-1, 1] in the graph, the transform the collector
-applies before sending them to Unity, so the file acts as the policy did in training.
+applies before sending them to Unity, so the file acts as the policy did in training;
+squashed (SAC) policies emit ``tanh`` of the sample and ``tanh(mean)`` as deterministic
+action, with the state-dependent log-std of ``conditional_sigma`` networks.
 Also owns ``export_checkpoint`` (one ``.onnx`` per behavior) behind ``unity-rollout export``.
 Not owned: the networks (``learners.policies``), the checkpoint format
 (``learners.checkpoint``), recurrent memories (no network here has one). See docs/export.md.
@@ -50,9 +52,11 @@ class _ExportedPolicy(nn.Module):
         count = len(net.sensor_names)
         hidden = net.features(dict(zip(net.sensor_names, inputs[:count], strict=True)))
         outputs = [self.version_number.clone(), self.memory_size.clone()]
-        if net.mean is not None and net.log_std is not None:
-            mean = net.mean(hidden)
-            sample = mean + torch.randn_like(mean) * torch.exp(net.log_std)
+        if net.mean is not None:
+            mean, log_std = net.mean_log_std(hidden)
+            sample = mean + torch.randn_like(mean) * torch.exp(log_std)
+            if net.settings.tanh_squash:  # SAC policies: the action is tanh of the Gaussian
+                sample, mean = torch.tanh(sample), torch.tanh(mean)
             outputs += [
                 sample.clamp(-1.0, 1.0),
                 self.continuous_shape.clone(),

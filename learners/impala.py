@@ -20,12 +20,13 @@ from tensordict import TensorDict
 from torchrl.objectives import A2CLoss
 from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
-from learners.modules import (
-    FLAT_ACTION,
-    add_flat_action,
-    obs_keys,
-    probabilistic_actor,
-    value_operator,
+from learners.modules import FLAT_ACTION, obs_keys, probabilistic_actor, value_operator
+from learners.onpolicy import (
+    SegmentBuffer,
+    actor_critic_report,
+    gradient_step,
+    means,
+    set_learning_rate,
 )
 from learners.policies import ActorCritic
 from learners.schedules import linear_decay
@@ -50,22 +51,18 @@ class IMPALA:
         )
         self.loss.set_keys(action=FLAT_ACTION, sample_log_prob=keys.LOG_PROB)
         self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate)
-        self.pending: list[TensorDict] = []
-        self.pending_steps = 0
+        self.buffer = SegmentBuffer(h.buffer_size)
         self.max_lag_seen = 0
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
         """Buffer a ``[B, T]`` segment; every valid step counts, however old."""
-        segment = segment.exclude(*keys.METADATA)
-        steps = int(segment[keys.VALID].sum())
-        if steps:
-            self.pending.append(segment)
-            self.pending_steps += steps
-            self.max_lag_seen = max(self.max_lag_seen, int(lag[segment[keys.VALID]].max()))
-        return steps
+        valid = segment[keys.VALID]
+        if valid.any():
+            self.max_lag_seen = max(self.max_lag_seen, int(lag[valid].max()))
+        return self.buffer.add(segment)
 
     def ready(self) -> bool:
-        return self.pending_steps >= self.settings.hyperparameters.buffer_size
+        return self.buffer.ready()
 
     def vtrace(self, rows: TensorDict) -> TensorDict:
         """Set ``advantage`` and ``value_target`` on ``[B, T]`` rows (no gradient)."""
@@ -95,47 +92,24 @@ class IMPALA:
 
     def update(self, progress: float) -> dict[str, float]:
         h = self.settings.hyperparameters
-        batch = torch.cat(self.pending, dim=0)
-        self.pending, self.pending_steps = [], 0
-        valid = batch[keys.VALID]
-        obs = batch[keys.OBS]
-        self.network.update_normalization({n: obs[n][valid] for n in obs.keys()})  # noqa: SIM118
-        batch[keys.NEXT, keys.REWARD] = (
-            batch[keys.NEXT, keys.REWARD] * self.settings.reward_strength
-        )
-        add_flat_action(batch)
-
+        batch = self.buffer.take(self.network, self.settings.reward_strength)
         lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        set_learning_rate(self.optimizer, lr)
         rows_per_batch = max(1, h.batch_size // batch.shape[1])
         totals: dict[str, float] = {}
-        updates, samples, rho_sum, value_sum = 0, 0, 0.0, 0.0
+        samples, rho_sum, value_sum = 0, 0.0, 0.0
         for _ in range(h.num_epoch):
             for index in torch.randperm(batch.shape[0]).split(rows_per_batch):
-                rows = self.vtrace(batch[index])
+                rows = self.vtrace(batch[index])  # targets under the newest weights
                 steps = rows[rows[keys.VALID]]
                 if len(steps) < 2:
                     continue
-                losses = self.loss(steps)
-                loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
-                self.optimizer.zero_grad()
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(self.network.parameters(), 0.5)
-                self.optimizer.step()
-                for key, value in losses.items():
-                    totals[key] = totals.get(key, 0.0) + float(value.detach().mean())
-                updates += 1
+                gradient_step(self.loss, steps, self.optimizer, self.network, totals)
                 samples += len(steps)
                 rho_sum += float(steps["rho"].sum())
                 value_sum += float(steps["value_target"].sum())
-        mean = {key: value / max(updates, 1) for key, value in totals.items()}
         return {
-            "Losses/Policy Loss": mean.get("loss_objective", 0.0),
-            "Losses/Value Loss": mean.get("loss_critic", 0.0) * 2,  # undo critic_coeff 0.5
-            "Policy/Entropy": mean.get("entropy", 0.0),
-            "Policy/Learning Rate": lr,
-            "Policy/Beta": h.beta,
+            **actor_critic_report(means(totals), lr, h.beta),
             "Policy/Extrinsic Value Estimate": value_sum / max(samples, 1),
             "Policy/Mean Importance Ratio": rho_sum / max(samples, 1),
             "Policy/Max Lag Seen": float(self.max_lag_seen),

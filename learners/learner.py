@@ -14,14 +14,14 @@ behaviors learning side by side do not make each other's data look stale.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 from tensordict import TensorDict
 
 from learners import checkpoint
-from learners.policies import ActorCritic, PolicyFactory, base_name
+from learners.policies import ActorCritic, NetworkSettings, PolicyFactory, base_name
 from rollout import keys
 from rollout.specs import spec_from_dict
 
@@ -57,12 +57,27 @@ def make_algorithm(network: ActorCritic, settings: TrainerSettings) -> Algorithm
     raise ValueError(f"trainer_type {settings.trainer_type!r}: use ppo, sac or impala")
 
 
+def network_settings(settings: TrainerSettings) -> NetworkSettings:
+    """A behavior's network settings; SAC behaviors get ML-Agents' squashed policy
+    (``tanh_squash``, ``conditional_sigma``), in the learner and in every worker alike."""
+    if settings.trainer_type == "sac":
+        return replace(settings.network_settings, tanh_squash=True, conditional_sigma=True)
+    return settings.network_settings
+
+
 def policy_factory(config: RunConfig) -> PolicyFactory:
     """The factory workers and learner share: network settings of each configured behavior."""
     return PolicyFactory(
-        {name: s.network_settings for name, s in config.behaviors.items()},
-        config.default.network_settings,
+        {name: network_settings(s) for name, s in config.behaviors.items()},
+        network_settings(config.default),
     )
+
+
+def policy_lag(updates: list[int], acted: torch.Tensor) -> torch.Tensor:
+    """Per step: how many of the behavior's own updates (their global versions, ascending)
+    came after the version that acted."""
+    made = torch.tensor(updates, dtype=torch.int64)
+    return len(made) - torch.searchsorted(made, acted.contiguous(), right=True)
 
 
 @dataclass
@@ -87,7 +102,7 @@ class CentralLearner:
     def __init__(self, config: RunConfig, max_steps: int | None = None) -> None:
         torch.set_num_threads(1)  # shares the node with Unity workers: one core's worth
         self.config = config
-        self.max_steps = max_steps  # overrides each behavior's max_steps (CLI --max-steps)
+        self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)
         self.factory = policy_factory(config)
         self.version = 0
         self.behaviors: dict[str, BehaviorState] = {}
@@ -101,10 +116,7 @@ class CentralLearner:
         for segment in segments:
             behavior = segment.get_non_tensor(keys.BEHAVIOR)
             state = self._behavior(behavior, segment.get_non_tensor(keys.SPEC))
-            # policy lag = this behavior's updates made after the version that acted
-            updates = torch.tensor(state.updates, dtype=torch.int64)
-            acted = segment[keys.POLICY_VERSION].contiguous()
-            lag = len(updates) - torch.searchsorted(updates, acted, right=True)
+            lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])
             state.steps += int(segment[keys.VALID].sum())
             state.algorithm.add(segment, lag)
             if state.algorithm.ready():
@@ -128,7 +140,8 @@ class CentralLearner:
 
     def _update(self, behavior: str, state: BehaviorState) -> None:
         started = time.perf_counter()
-        report = state.algorithm.update(progress=state.steps / self.behavior_max_steps(behavior))
+        # schedules run over the config's max_steps; --max-steps only stops the run early
+        report = state.algorithm.update(progress=state.steps / state.settings.max_steps)
         self.stats.update_seconds += time.perf_counter() - started
         self.stats.samples += int(report.get("Policy/Samples", 0))
         self.stats.updates += 1

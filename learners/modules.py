@@ -105,9 +105,9 @@ class _PolicyParams(nn.Module):
         net = self.network
         hidden = net.features(dict(zip(net.sensor_names, sensors, strict=True)))
         out: tuple[torch.Tensor, ...] = ()
-        if net.mean is not None and net.log_std is not None:
-            loc = net.mean(hidden)
-            out += (loc, net.log_std.exp().expand_as(loc))
+        if net.mean is not None:
+            loc, log_std = net.mean_log_std(hidden)
+            out += (loc, log_std.exp())
         if net.logits is not None:
             out += (net.logits(hidden),)
         return out

@@ -6,6 +6,11 @@ sample is stored and clipped to [-1, 1] only when sent to Unity, as ML-Agents do
 each discrete branch (a masked categorical: masked actions have probability zero), and
 for the value. Plain torch: no Ray, so the learner side is testable in-process; the
 rollout workers get a CPU copy through ``actor_factory``.
+
+SAC networks (as ML-Agents builds them) set ``tanh_squash``: the action sent and stored is
+``tanh(u)`` of the Gaussian sample ``u``, its log-probability carries the tanh Jacobian
+correction; and ``conditional_sigma``: the log-std comes from a head on the trunk
+(clamped to [LOG_STD_MIN, LOG_STD_MAX]) instead of a state-independent parameter.
 """
 
 from __future__ import annotations
@@ -16,12 +21,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from mlagents_envs.base_env import BehaviorSpec
+from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
 from torch import nn
 from torch.distributions import Categorical, Normal
 from torchrl.modules import MaskedCategorical
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
+_LOG_2 = math.log(2.0)
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # conditional_sigma clamp (ML-Agents' range)
+SQUASH_EPS = 1e-6  # stored squashed actions are clamped to +-(1 - eps) before atanh
 
 
 @dataclass(frozen=True)
@@ -31,6 +39,18 @@ class NetworkSettings:
     hidden_units: int = 128
     num_layers: int = 2
     normalize: bool = False  # running mean/variance normalization of vector observations
+    # "hyper": goal signals (ObservationType.GOAL_SIGNAL) condition the other features
+    # multiplicatively (one set of trunk weights per goal dimension, what ML-Agents'
+    # hypernetwork achieves); "none": goal signals are ordinary inputs.
+    goal_conditioning_type: str = "hyper"
+    # Not config keys: set by the learner's policy factory for SAC behaviors.
+    tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
+    conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter
+
+
+def tanh_log_det(u: torch.Tensor) -> torch.Tensor:
+    """log(1 - tanh(u)^2), stable for large |u| (the form torch's TanhTransform uses)."""
+    return 2.0 * (_LOG_2 - u - torch.nn.functional.softplus(-2.0 * u))
 
 
 class RunningNorm(nn.Module):
@@ -69,18 +89,21 @@ class RunningNorm(nn.Module):
 
 
 class SensorEncoder(nn.Module):
-    """Vectors pass through flattened; images ``[C, H, W]`` go through a small CNN."""
+    """Vectors pass through flattened; images ``[C, H, W]`` go through a small CNN: ML-Agents'
+    ``simple`` encoder (8x8 stride 4, then 4x4 stride 2) from 20 pixels up, which keeps
+    the flattened features few (288 for 40x40), else two 3x3 convolutions."""
 
     def __init__(self, shape: tuple[int, ...], normalize: bool = False) -> None:
         super().__init__()
         self.norm: RunningNorm | None = None
         if len(shape) == 3:
             channels, height, width = shape
+            large = min(height, width) >= 20
             self.net: nn.Module = nn.Sequential(
-                nn.Conv2d(channels, 16, kernel_size=3, stride=2, padding=1),
-                nn.ReLU(),
-                nn.Conv2d(16, 32, kernel_size=3, stride=2, padding=1),
-                nn.ReLU(),
+                nn.Conv2d(channels, 16, kernel_size=8 if large else 3, stride=4 if large else 1),
+                nn.LeakyReLU(),
+                nn.Conv2d(16, 32, kernel_size=4 if large else 3, stride=2 if large else 1),
+                nn.LeakyReLU(),
                 nn.Flatten(),
             )
             with torch.no_grad():
@@ -100,6 +123,13 @@ class SensorEncoder(nn.Module):
         return self.net(x)
 
 
+def _is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
+    return (
+        settings.goal_conditioning_type == "hyper"
+        and observation.observation_type == ObservationType.GOAL_SIGNAL
+    )
+
+
 def _mlp(width: int, settings: NetworkSettings) -> nn.Sequential:
     layers: list[nn.Module] = []
     for _ in range(settings.num_layers):
@@ -117,7 +147,12 @@ class ActorCritic(nn.Module):
         self.encoders = nn.ModuleList(
             SensorEncoder(o.shape, settings.normalize) for o in spec.observation_specs
         )
-        encoded = sum(e.size for e in self.encoders)
+        sizes = [e.size for e in self.encoders]
+        goals = [i for i, o in enumerate(spec.observation_specs) if _is_goal(o, settings)]
+        goal_size = sum(sizes[i] for i in goals)
+        other_size = sum(sizes) - goal_size
+        self.goal_sensors = goals if goal_size and other_size else []
+        encoded = other_size * goal_size + goal_size if self.goal_sensors else sum(sizes)
         # Separate policy and value trunks over shared encoders (ML-Agents' default,
         # shared_critic: false): the value loss does not pull on the policy's features.
         self.trunk = _mlp(encoded, settings)
@@ -126,10 +161,17 @@ class ActorCritic(nn.Module):
         self.continuous = spec.action_spec.continuous_size
         self.branches = tuple(spec.action_spec.discrete_branches)
         self.mean = nn.Linear(width, self.continuous) if self.continuous else None
-        self.log_std = nn.Parameter(torch.zeros(self.continuous)) if self.continuous else None
+        conditional = bool(self.continuous) and settings.conditional_sigma
+        self.log_std = (
+            nn.Parameter(torch.zeros(self.continuous))
+            if self.continuous and not conditional
+            else None
+        )
+        self.log_std_head = nn.Linear(width, self.continuous) if conditional else None
         self.logits = nn.Linear(width, sum(self.branches)) if self.branches else None
         self.value = nn.Linear(width, 1)
-        for head in (self.mean, self.logits):  # near-uniform first policy: small output layer
+        # near-uniform first policy (log-std ~ 0 too): small output layers
+        for head in (self.mean, self.logits, self.log_std_head):
             if head is not None:
                 nn.init.orthogonal_(head.weight, gain=0.01)
                 nn.init.zeros_(head.bias)
@@ -142,7 +184,12 @@ class ActorCritic(nn.Module):
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         parts = [enc(obs[name]) for name, enc in zip(self.sensor_names, self.encoders, strict=True)]
-        return torch.cat(parts, dim=-1)
+        if not self.goal_sensors:
+            return torch.cat(parts, dim=-1)
+        goal = torch.cat([p for i, p in enumerate(parts) if i in self.goal_sensors], dim=-1)
+        other = torch.cat([p for i, p in enumerate(parts) if i not in self.goal_sensors], dim=-1)
+        conditioned = (other.unsqueeze(-1) * goal.unsqueeze(-2)).flatten(-2)
+        return torch.cat([conditioned, goal], dim=-1)
 
     def features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         return self.trunk(self.encode(obs))
@@ -151,14 +198,25 @@ class ActorCritic(nn.Module):
         """V(obs) with the batch dims kept (no trailing 1)."""
         return self.value(self.critic_trunk(self.encode(obs))).squeeze(-1)
 
+    def mean_log_std(self, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The Gaussian's mean and log-std (before any tanh squash) for a trunk output."""
+        assert self.mean is not None
+        mean = self.mean(hidden)
+        if self.log_std_head is not None:
+            return mean, self.log_std_head(hidden).clamp(LOG_STD_MIN, LOG_STD_MAX)
+        assert self.log_std is not None
+        return mean, self.log_std.expand_as(mean)
+
     def distributions(
         self, hidden: torch.Tensor, mask: torch.Tensor | None
     ) -> tuple[Normal | None, list[Categorical]]:
+        """The pre-squash Gaussian (``tanh_squash``: actions are tanh of its samples) and
+        one categorical per discrete branch."""
         normal = None
-        if self.mean is not None and self.log_std is not None:
-            mean = self.mean(hidden)
+        if self.mean is not None:
+            mean, log_std = self.mean_log_std(hidden)
             # validate_args=False: argument checks cost more than the tiny MLP per step
-            normal = Normal(mean, self.log_std.exp().expand_as(mean), validate_args=False)
+            normal = Normal(mean, log_std.exp(), validate_args=False)
         return normal, self.branch_distributions(hidden, mask)
 
     def branch_distributions(
@@ -185,13 +243,16 @@ class ActorCritic(nn.Module):
         n = hidden.shape[0]
         log_prob = torch.zeros(n)
         continuous = torch.zeros(n, 0)
-        if self.mean is not None and self.log_std is not None:
+        if self.mean is not None:
             # The Gaussian by hand: on the acting hot path, Distribution objects cost more
             # than the network (same values as Normal.sample / Normal.log_prob).
-            mean, log_std = self.mean(hidden), self.log_std
+            mean, log_std = self.mean_log_std(hidden)
             noise = torch.zeros_like(mean) if deterministic else torch.randn_like(mean)
             continuous = mean + noise * log_std.exp()
             log_prob = (-0.5 * noise.square() - log_std - _HALF_LOG_2PI).sum(-1)
+            if self.settings.tanh_squash:  # log p(tanh u) = log p(u) - log|d tanh/du|
+                log_prob = log_prob - tanh_log_det(continuous).sum(-1)
+                continuous = torch.tanh(continuous)
         discrete = torch.zeros(n, 0, dtype=torch.int64)
         if self.logits is not None:
             # Gumbel-max sampling per branch over masked log-softmax logits: the same law
@@ -225,7 +286,14 @@ class ActorCritic(nn.Module):
         lead = hidden.shape[:-1]
         log_prob, entropy = torch.zeros(lead), torch.zeros(lead)
         if normal is not None and continuous is not None:
-            log_prob = log_prob + normal.log_prob(continuous).sum(-1)
+            if self.settings.tanh_squash:  # invert the squash on the stored tanh(u)
+                bound = 1.0 - SQUASH_EPS
+                u = torch.atanh(continuous.clamp(-bound, bound))
+                log_prob = log_prob + (normal.log_prob(u) - tanh_log_det(u)).sum(-1)
+            else:
+                log_prob = log_prob + normal.log_prob(continuous).sum(-1)
+            # squashed: the pre-squash Gaussian's entropy (no closed form after tanh;
+            # ML-Agents reports the same)
             entropy = entropy + normal.entropy().sum(-1)
         for index, dist in enumerate(branches):
             assert discrete is not None
@@ -259,7 +327,8 @@ class RolloutActor:
 
     def _refresh(self) -> None:
         net = self.network
-        if any(isinstance(e.net, nn.Sequential) for e in net.encoders):  # a CNN: use torch
+        if net.goal_sensors or any(isinstance(e.net, nn.Sequential) for e in net.encoders):
+            # a CNN or goal conditioning: use torch
             self._layers = None
             return
 
@@ -283,6 +352,7 @@ class RolloutActor:
         self._log_std = (
             net.log_std.detach().numpy().astype(np.float32) if net.log_std is not None else None
         )
+        self._log_std_head = numpy(net.log_std_head) if net.log_std_head is not None else None
 
     def act(
         self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
@@ -306,11 +376,21 @@ class RolloutActor:
             hidden = np.tanh(hidden @ weight + bias)
         log_prob = np.zeros(n, np.float32)
         continuous = np.zeros((n, 0), np.float32)
-        if self._mean is not None and self._log_std is not None:
+        if self._mean is not None:
             mean = hidden @ self._mean[0] + self._mean[1]
+            if self._log_std_head is not None:
+                log_std = hidden @ self._log_std_head[0] + self._log_std_head[1]
+                log_std = np.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+            else:
+                assert self._log_std is not None
+                log_std = self._log_std
             noise = self.rng.standard_normal(mean.shape, dtype=np.float32)
-            continuous = mean + noise * np.exp(self._log_std)
-            log_prob += (-0.5 * noise * noise - self._log_std - _HALF_LOG_2PI).sum(-1)
+            continuous = mean + noise * np.exp(log_std)
+            log_prob += (-0.5 * noise * noise - log_std - _HALF_LOG_2PI).sum(-1)
+            if net.settings.tanh_squash:  # as ActorCritic.act: Jacobian, then squash
+                log_det = 2.0 * (_LOG_2 - continuous - np.logaddexp(0.0, -2.0 * continuous))
+                log_prob -= log_det.sum(-1)
+                continuous = np.tanh(continuous)
         discrete = np.zeros((n, 0), np.int64)
         if self._logits is not None:
             logits = hidden @ self._logits[0] + self._logits[1]

@@ -22,7 +22,14 @@ from tensordict import TensorDict
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from learners.modules import FLAT_ACTION, add_flat_action, probabilistic_actor, value_operator
+from learners.modules import FLAT_ACTION, probabilistic_actor, value_operator
+from learners.onpolicy import (
+    SegmentBuffer,
+    actor_critic_report,
+    gradient_step,
+    means,
+    set_learning_rate,
+)
 from learners.policies import ActorCritic
 from learners.schedules import linear_decay
 from rollout import keys
@@ -51,75 +58,42 @@ class PPO:
             gamma=settings.gamma, lmbda=h.lambd, value_network=critic, average_gae=False
         )
         self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate)
-        self.pending: list[TensorDict] = []
-        self.pending_steps = 0
+        self.buffer = SegmentBuffer(h.buffer_size)
         self.stale_steps = 0
 
     # --- data in ------------------------------------------------------------------------
 
-    def add(self, segment: TensorDict, version: int) -> int:
-        """Buffer a ``[B, T]`` segment; returns the steps that will count in the loss."""
-        segment = segment.exclude(*keys.METADATA)
-        fresh = (
-            version - segment[keys.POLICY_VERSION] <= self.settings.hyperparameters.max_policy_lag
-        )
-        valid = segment[keys.VALID]
-        self.stale_steps += int((valid & ~fresh).sum())
-        segment[keys.VALID] = valid & fresh
-        steps = int(segment[keys.VALID].sum())
-        if steps:
-            self.pending.append(segment)
-            self.pending_steps += steps
-        return steps
+    def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
+        """Buffer a ``[B, T]`` segment (``lag``: per step, updates of this behavior since
+        the weights that acted); returns the steps that will count in the loss."""
+        fresh = lag <= self.settings.hyperparameters.max_policy_lag
+        self.stale_steps += int((segment[keys.VALID] & ~fresh).sum())
+        return self.buffer.add(segment, keep=fresh)
 
     def ready(self) -> bool:
-        return self.pending_steps >= self.settings.hyperparameters.buffer_size
+        return self.buffer.ready()
 
     # --- the update ---------------------------------------------------------------------
 
     def update(self, progress: float) -> dict[str, float]:
         """One PPO iteration on everything buffered; ``progress`` in [0, 1] drives schedules."""
         h = self.settings.hyperparameters
-        batch = torch.cat(self.pending, dim=0)
-        self.pending, self.pending_steps = [], 0
-        valid = batch[keys.VALID]
-
-        obs = batch[keys.OBS]
-        self.network.update_normalization({n: obs[n][valid] for n in obs.keys()})  # noqa: SIM118
-        batch[keys.NEXT, keys.REWARD] = (
-            batch[keys.NEXT, keys.REWARD] * self.settings.reward_strength
-        )
-        add_flat_action(batch)
+        batch = self.buffer.take(self.network, self.settings.reward_strength)
         with torch.no_grad():
             self.advantage(batch)
-        steps = batch[valid]  # [N]: the valid steps, each with its advantage and target
+        steps = batch[batch[keys.VALID]]  # [N]: valid steps, each with advantage and target
 
         lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        set_learning_rate(self.optimizer, lr)
         totals: dict[str, float] = {}
-        updates = 0
         for _ in range(h.num_epoch):
             for index in torch.randperm(len(steps)).split(h.batch_size):
-                if len(index) < 2:
-                    continue
-                losses = self.loss(steps[index])
-                loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
-                self.optimizer.zero_grad()
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(self.network.parameters(), 0.5)
-                self.optimizer.step()
-                for key, value in losses.items():
-                    totals[key] = totals.get(key, 0.0) + float(value.detach().mean())
-                updates += 1
-        mean = {key: value / max(updates, 1) for key, value in totals.items()}
+                if len(index) > 1:
+                    gradient_step(self.loss, steps[index], self.optimizer, self.network, totals)
+        mean = means(totals)
         return {
-            "Losses/Policy Loss": mean.get("loss_objective", 0.0),
-            "Losses/Value Loss": mean.get("loss_critic", 0.0) * 2,  # undo critic_coeff 0.5
-            "Policy/Entropy": mean.get("entropy", 0.0),
-            "Policy/Learning Rate": lr,
+            **actor_critic_report(mean, lr, h.beta),
             "Policy/Epsilon": h.epsilon,
-            "Policy/Beta": h.beta,
             "Policy/Clip Fraction": mean.get("clip_fraction", 0.0),
             "Policy/Approx KL": mean.get("kl_approx", 0.0),
             "Policy/Extrinsic Value Estimate": float(steps["state_value"].mean()),

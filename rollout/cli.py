@@ -7,6 +7,7 @@ the command so ``--help`` stays instant.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -41,8 +42,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
     import logging
 
+    if not args.address:
+        _loopback_only_ray()
     from rich.console import Console
 
+    from rollout.service import RolloutError
     from rollout.train import TrainingError, TrainOptions, train
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -68,6 +72,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     except TrainingError as error:
         console.print(f"[red]error:[/red] {error}", soft_wrap=True)
         return 2
+    except RolloutError as error:
+        console.print(f"[red]error:[/red] {error} (a checkpoint was kept)", soft_wrap=True)
+        return 1
     rewards = ", ".join(
         f"{name}: {v['mean_reward']:.3f}"
         for name, v in result.latest.items()
@@ -82,8 +89,18 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _loopback_only_ray() -> None:
+    """Local mode: every Ray port and the dashboard bind 127.0.0.1. Ray reads this switch
+    (its loopback-only mode, on by default on Windows and macOS) when it is imported."""
+    if "ray" in sys.modules:
+        raise RuntimeError("_loopback_only_ray() must run before ray is imported")
+    os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+
+
 def _cmd_collect(args: argparse.Namespace) -> int:
     """Collect with N workers into a counting learner: a pipeline check without training."""
+    if not args.address:
+        _loopback_only_ray()
     import ray
     from rich.console import Console
 

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import ray
-from ray.exceptions import RayActorError
+from ray.exceptions import RayActorError, RayTaskError
 
 from rollout import keys
 from rollout.collector import ActorFactory, CollectorMetrics
@@ -165,6 +165,9 @@ class RolloutService:
         index = self._collects.pop(ref)
         try:
             segments = ray.get(ref)
+        except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
+            cause = getattr(error, "cause", None) or error
+            raise RolloutError(f"worker {index}: {str(cause).strip().splitlines()[-1]}") from None
         except RayActorError as error:
             self.metrics.worker_restarts += 1
             self._failures[index] += 1

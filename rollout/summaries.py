@@ -28,6 +28,8 @@ from rollout.service import ServiceMetrics
 _RATE_TAGS = {
     "collect": "Perf/Agent Steps per Second",
     "learn": "Perf/Learner Samples per Second",
+    "capacity": "Perf/Learner Samples per Busy Second",
+    "busy": "Perf/Learner Busy Fraction",
 }
 
 
@@ -60,7 +62,7 @@ class Summaries:
         self.live = Live(console=self.console, auto_refresh=False) if progress else None
         self.started = time.perf_counter()
         self.rates: dict[str, float] = {}
-        self._last_rate = (self.started, 0, 0)
+        self._last_rate = (self.started, 0, 0, 0.0)
 
     def __enter__(self) -> Summaries:
         if self.live is not None:
@@ -87,14 +89,18 @@ class Summaries:
         """Fold in the newest numbers; write a summary for each behavior past its period."""
         now = time.perf_counter()
         stats = progress["stats"]
-        then, steps_then, samples_then = self._last_rate
+        then, steps_then, samples_then, busy_then = self._last_rate
         total = sum(progress["steps"].values())
         if now - then >= 2.0:
+            busy = stats.update_seconds - busy_then
             self.rates = {
                 "collect": (total - steps_then) / (now - then),
                 "learn": (stats.samples - samples_then) / (now - then),
+                # what the learner could take if never idle, and how often it is busy
+                "capacity": (stats.samples - samples_then) / busy if busy > 0 else 0.0,
+                "busy": busy / (now - then),
             }
-            self._last_rate = (now, total, stats.samples)
+            self._last_rate = (now, total, stats.samples, stats.update_seconds)
         for behavior, _, report in reports:
             window = self._window(behavior, progress["steps"].get(behavior, 0))
             for key, value in report.items():

@@ -29,7 +29,7 @@ import yaml
 from learners import checkpoint
 from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
 from learners.learner import learner_actor, policy_factory
-from rollout.service import RolloutService, ServiceConfig
+from rollout.service import RolloutError, RolloutService, ServiceConfig
 from rollout.summaries import Summaries
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
 
@@ -190,7 +190,6 @@ def train(options: TrainOptions) -> TrainResult:
                 num_cpus=options.cpus,
                 include_dashboard=False,
                 log_to_driver=False,
-                _node_ip_address="127.0.0.1",
             )
         started_ray = True
     try:
@@ -228,7 +227,11 @@ def _run(
         ) as summaries,
     ):
         while not received:
-            metrics = service.run(seconds=1.0, report_every=1.0)
+            try:
+                metrics = service.run(seconds=1.0, report_every=1.0)
+            except RolloutError:  # keep what was learned, then report the cause
+                checkpoints.save(ray.get(learner.state_dict.remote()), meta)
+                raise
             progress = ray.get(learner.progress.remote())
             summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
             if checkpoints.due(sum(progress["steps"].values())):

@@ -95,6 +95,13 @@ def test_the_trained_policy_exports_and_runs_in_onnxruntime(trained, tmp_path):
     np.testing.assert_allclose(actions, expected.clamp(-1, 1).numpy(), atol=1e-5)
 
 
+def _connections(process: psutil.Process) -> list:
+    try:
+        return process.net_connections(kind="inet")
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        return []
+
+
 def run_marked(marker: str) -> list[psutil.Process]:
     found = []
     for process in psutil.process_iter():
@@ -122,6 +129,15 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
             assert driver.poll() is None, driver.stdout.read().decode() if driver.stdout else ""
             assert time.monotonic() < deadline, "training did not start"
             time.sleep(0.5)
+        listening = {
+            f"{c.laddr.ip}:{c.laddr.port}"
+            for p in run_marked(marker)
+            for c in _connections(p)
+            if c.status == psutil.CONN_LISTEN
+        }
+        assert listening, "the run's Ray and Unity processes listen somewhere"
+        exposed = sorted(a for a in listening if not a.startswith(("127.", "::1", "::ffff:127.")))
+        assert not exposed, f"local mode must bind loopback only: {exposed}"
         if how.startswith("SIGTERM"):
             driver.send_signal(signal.SIGTERM)
         else:

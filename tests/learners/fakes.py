@@ -10,6 +10,19 @@ from tensordict import TensorDict
 from rollout import keys
 from rollout.specs import spec_to_dict, step_spec
 
+VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
+GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
+IMAGE = ObservationSpec(
+    (3, 12, 12),
+    (
+        DimensionProperty.NONE,
+        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
+        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
+    ),
+    Obs.DEFAULT,
+    "camera",
+)
+
 
 def vector_spec(size: int = 4, continuous: int = 0, branches: tuple[int, ...] = ()) -> BehaviorSpec:
     sensor = ObservationSpec((size,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")

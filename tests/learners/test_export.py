@@ -11,27 +11,15 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
-from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
-from mlagents_envs.base_env import ObservationType as Obs
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec
 
 from learners import checkpoint
 from learners.checkpoint import network_settings_dict, spec_to_dict
 from learners.export import export_checkpoint, export_onnx
 from learners.policies import ActorCritic, NetworkSettings
 from rollout import cli
+from tests.learners.fakes import GRID, IMAGE, VECTOR
 
-VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
-GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
-IMAGE = ObservationSpec(
-    (3, 12, 12),
-    (
-        DimensionProperty.NONE,
-        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
-        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
-    ),
-    Obs.DEFAULT,
-    "camera",
-)
 SPECS = {
     "continuous": BehaviorSpec([VECTOR], ActionSpec(2, ())),  # 3DBall-like
     "discrete": BehaviorSpec([VECTOR], ActionSpec(0, (3, 4, 2))),
@@ -266,3 +254,36 @@ def test_cli_export_bad_source(tmp_path, capsys, bad):
     assert captured.out == ""
     assert len(captured.err.strip().splitlines()) == 1
     assert captured.err.startswith("error:")
+
+
+def test_squashed_conditional_policy_exports_tanh_of_the_mean(tmp_path):
+    """SAC networks: the deterministic action is tanh(mean), samples are tanh of a Gaussian
+    whose spread comes from the state-dependent log-std head."""
+    spec = SPECS["continuous"]
+    torch.manual_seed(0)
+    settings = NetworkSettings(32, 2, normalize=True, tanh_squash=True, conditional_sigma=True)
+    network = ActorCritic(spec, settings)
+    with torch.no_grad():
+        torch.nn.init.normal_(network.mean.weight, std=0.3)
+        network.log_std_head.bias.fill_(math.log(0.1))
+    network.update_normalization(
+        {k: torch.from_numpy(v) for k, v in observations(spec, 256, seed=99).items()}
+    )
+    sess = session(export_onnx(network, tmp_path / "sac.onnx"))
+    obs = observations(spec, 7, seed=1)
+    out = run(sess, feeds(spec, obs, None))
+    expected, _ = torch_deterministic(network, obs, None)
+    with torch.no_grad():
+        hidden = network.features({k: torch.from_numpy(v) for k, v in obs.items()})
+        mean, _ = network.mean_log_std(hidden)
+    np.testing.assert_allclose(expected, torch.tanh(mean).numpy(), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(out["deterministic_continuous_actions"], expected, atol=1e-5)
+    assert np.abs(out["deterministic_continuous_actions"]).max() > 0.1  # not all ~0
+
+    n = 4000  # stochastic: tanh of N(mean, 0.1), so atanh of the samples has that spread
+    many = {k: np.repeat(v[:1], n, axis=0) for k, v in obs.items()}
+    samples = run(sess, feeds(spec, many, None))["continuous_actions"]
+    assert np.abs(samples).max() < 1.0
+    pre = np.arctanh(samples.astype(np.float64))
+    np.testing.assert_allclose(pre.std(0), 0.1, rtol=0.1)
+    np.testing.assert_allclose(pre.mean(0), mean[0].numpy(), atol=0.02)

@@ -6,23 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
-from mlagents_envs.base_env import ObservationType as Obs
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
 from learners.policies import ActorCritic, NetworkSettings, RolloutActor, RunningNorm
-
-VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
-GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
-IMAGE = ObservationSpec(
-    (3, 12, 12),
-    (
-        DimensionProperty.NONE,
-        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
-        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
-    ),
-    Obs.DEFAULT,
-    "camera",
-)
+from tests.learners.fakes import GRID, IMAGE, VECTOR
 
 
 def hybrid_spec(*sensors: ObservationSpec) -> BehaviorSpec:
@@ -105,3 +92,54 @@ def test_running_norm_matches_the_statistics_of_everything_it_saw():
     out = norm(torch.from_numpy(everything).float())
     assert abs(float(out.mean())) < 1e-3 and abs(float(out.std()) - 1) < 1e-2
     assert float(norm(torch.full((1, 5), 1e6)).max()) == norm.clip
+
+
+SQUASHED_FLAGS = {"tanh_squash": True, "conditional_sigma": True}
+
+
+@pytest.mark.parametrize("normalize", [False, True], ids=["raw", "normalized"])
+@pytest.mark.parametrize("sensors", [(VECTOR, GRID), (VECTOR, IMAGE)], ids=["numpy", "torch"])
+def test_squashed_conditional_policy_agrees_with_the_network(sensors, normalize):
+    """SAC's policy: actions are tanh of the sample, in (-1, 1), and the log-prob the
+    workers store (with the tanh correction) is what ``evaluate`` gives the stored action."""
+    spec = BehaviorSpec(list(sensors), ActionSpec(2, ()))
+    torch.manual_seed(0)
+    network = ActorCritic(spec, NetworkSettings(normalize=normalize, **SQUASHED_FLAGS))
+    assert network.log_std is None and network.log_std_head is not None
+    with torch.no_grad():  # a state-dependent spread well away from 1
+        torch.nn.init.normal_(network.log_std_head.weight, std=0.05)
+        network.log_std_head.bias.fill_(-0.5)
+        torch.nn.init.normal_(network.mean.weight, std=0.05)
+    obs = observations(spec, 256)
+    if normalize:
+        network.update_normalization({k: torch.from_numpy(v * 3 + 2) for k, v in obs.items()})
+    actor = RolloutActor(network, seed=1)
+    continuous, _, log_prob = actor.act(obs)
+    assert np.abs(continuous).max() < 1.0 and continuous.std(0).min() > 0.05
+    tensors = {k: torch.from_numpy(v) for k, v in obs.items()}
+    with torch.no_grad():
+        expected, _, _ = network.evaluate(tensors, torch.from_numpy(continuous), None)
+        torch_continuous, _, torch_log_prob = network.act(tensors)
+        again, _, _ = network.evaluate(tensors, torch_continuous, None)
+        # the log-std differs per observation (conditional), within its clamp
+        mean, log_std = network.mean_log_std(network.features(tensors))
+    np.testing.assert_allclose(log_prob, expected.numpy(), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(torch_log_prob, again, rtol=1e-4, atol=1e-4)
+    assert float(log_std.std(0).min()) > 0.01
+    # By hand, in float64: log N(atanh(a); mean, std) - log(1 - a^2), summed over dims.
+    a = continuous.astype(np.float64)
+    u, std = np.arctanh(a), np.exp(log_std.double().numpy())
+    gaussian = -0.5 * ((u - mean.double().numpy()) / std) ** 2 - np.log(std * np.sqrt(2 * np.pi))
+    by_hand = (gaussian - np.log1p(-(a**2))).sum(-1)
+    np.testing.assert_allclose(log_prob, by_hand, rtol=1e-3, atol=1e-3)
+    # Deterministic acting is tanh(mean).
+    with torch.no_grad():
+        deterministic, _, _ = network.act(tensors, deterministic=True)
+        mean, _ = network.mean_log_std(network.features(tensors))
+    torch.testing.assert_close(deterministic, torch.tanh(mean))
+
+
+def test_default_settings_keep_the_state_independent_unsquashed_gaussian():
+    network = ActorCritic(hybrid_spec(VECTOR))
+    assert network.log_std is not None and network.log_std_head is None
+    assert "log_std_head.weight" not in network.state_dict()

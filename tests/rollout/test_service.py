@@ -11,7 +11,7 @@ import torch
 from learners.policies import actor_factory
 from rollout import keys
 from rollout.ports import PortAllocator, PortRange
-from rollout.service import RolloutService, ServiceConfig
+from rollout.service import RolloutError, RolloutService, ServiceConfig
 from rollout.specs import step_spec
 from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
@@ -159,3 +159,18 @@ def test_service_routes_segments_and_weights_and_survives_a_killed_worker(ray_se
     assert len(summary["versions_seen"]) >= 3, "workers picked up newer weights"
     assert summary["valid_steps"]["3DBall?team=0"] >= 3000
     assert metrics.policy_lag_count > 0 and metrics.policy_lag_max >= 0
+
+
+def test_a_worker_whose_unity_keeps_failing_ends_the_run_with_its_cause(ray_session, registry):
+    learner = ray_session.remote(CountingLearner).remote()
+    unity = UnityConfig(
+        "unitysim:3DBall", additional_args=("--sim-crash-after", "2"), max_restarts=1, backoff_s=0
+    )
+    config = ServiceConfig(
+        unity, num_workers=1, horizon=8, worker_cpus=0.5, port_range=PORTS, registry_dir=registry
+    )
+    with (
+        RolloutService(config, actor_factory, learner) as service,
+        pytest.raises(RolloutError, match=r"worker 0: .*restart budget of 1 spent"),
+    ):
+        service.run(seconds=60)

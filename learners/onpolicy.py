@@ -1,0 +1,87 @@
+"""What PPO and IMPALA share: the buffer of segments waiting for the next update, and one
+gradient step on a torchrl loss.
+
+The buffer keeps whole ``[B, T]`` rows (advantage estimators run along time) and counts
+valid steps; ``take`` hands them over as one batch, observations folded into the running
+normalization, rewards scaled by the extrinsic signal's strength, actions joined into the
+flat action the torchrl actor scores.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+
+from learners.modules import add_flat_action
+from learners.policies import ActorCritic
+from rollout import keys
+
+
+class SegmentBuffer:
+    def __init__(self, buffer_size: int) -> None:
+        self.buffer_size = buffer_size
+        self.segments: list[TensorDict] = []
+        self.steps = 0
+
+    def add(self, segment: TensorDict, keep: torch.Tensor | None = None) -> int:
+        """Buffer a segment; ``keep`` (per step) narrows which valid steps count."""
+        segment = segment.exclude(*keys.METADATA)
+        if keep is not None:
+            segment[keys.VALID] = segment[keys.VALID] & keep
+        steps = int(segment[keys.VALID].sum())
+        if steps:
+            self.segments.append(segment)
+            self.steps += steps
+        return steps
+
+    def ready(self) -> bool:
+        return self.steps >= self.buffer_size
+
+    def take(self, network: ActorCritic, reward_strength: float) -> TensorDict:
+        batch = torch.cat(self.segments, dim=0)
+        self.segments, self.steps = [], 0
+        valid, obs = batch[keys.VALID], batch[keys.OBS]
+        network.update_normalization({n: obs[n][valid] for n in obs.keys()})  # noqa: SIM118
+        batch[keys.NEXT, keys.REWARD] = batch[keys.NEXT, keys.REWARD] * reward_strength
+        return add_flat_action(batch)
+
+
+def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
+def gradient_step(
+    loss_module: nn.Module,
+    batch: TensorDictBase,
+    optimizer: torch.optim.Optimizer,
+    network: nn.Module,
+    totals: dict[str, float],
+) -> None:
+    """Sum the ``loss_*`` entries, step, and add every entry's value to ``totals``."""
+    losses = loss_module(batch)
+    loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
+    optimizer.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(network.parameters(), 0.5)
+    optimizer.step()
+    for key, value in losses.items():
+        totals[key] = totals.get(key, 0.0) + float(value.detach().mean())
+    totals["updates"] = totals.get("updates", 0.0) + 1
+
+
+def means(totals: dict[str, float]) -> dict[str, float]:
+    """Per gradient step: the mean of each loss entry ``gradient_step`` added up."""
+    return {key: value / max(totals.get("updates", 0), 1) for key, value in totals.items()}
+
+
+def actor_critic_report(mean: dict[str, float], lr: float, beta: float) -> dict[str, float]:
+    """ML-Agents' names for an actor-critic loss's means over one update."""
+    return {
+        "Losses/Policy Loss": mean.get("loss_objective", 0.0),
+        "Losses/Value Loss": mean.get("loss_critic", 0.0) * 2,  # undo critic_coeff 0.5
+        "Policy/Entropy": mean.get("entropy", 0.0),
+        "Policy/Learning Rate": lr,
+        "Policy/Beta": beta,
+    }

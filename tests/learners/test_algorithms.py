@@ -1,0 +1,223 @@
+"""PPO and IMPALA without Ray: advantage and V-trace targets against hand-computed
+cases, losses that go down on a fixed batch, stale steps dropped, the learner's
+versions and per-behavior policy lag."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from learners.config import defaults, parse_config
+from learners.impala import IMPALA
+from learners.learner import CentralLearner, policy_lag
+from learners.modules import add_flat_action
+from learners.policies import ActorCritic, NetworkSettings
+from learners.ppo import PPO
+from rollout import keys
+from tests.learners.fakes import segment, vector_spec
+
+
+def settings(trainer: str = "ppo", gamma: float = 0.9, **hyper):
+    base = defaults(trainer)
+    h = dataclasses.replace(base.hyperparameters, **hyper)
+    return dataclasses.replace(base, hyperparameters=h, gamma=gamma)
+
+
+def constant_value_network(spec, value: float = 0.5) -> ActorCritic:
+    """Uniform policy (zero logits) and V(s) = value everywhere: hand-computable targets."""
+    network = ActorCritic(spec, NetworkSettings(hidden_units=8, num_layers=1))
+    with torch.no_grad():
+        network.value.weight.zero_()
+        network.value.bias.fill_(value)
+        if network.logits is not None:
+            network.logits.weight.zero_()
+            network.logits.bias.zero_()
+    return network
+
+
+def on_policy(network: ActorCritic, batch):
+    """Stamp each step with the log-probability the network gives its action."""
+    actions = batch[keys.ACTION]
+    continuous = actions.get(keys.CONTINUOUS, None)
+    discrete = actions.get(keys.DISCRETE, None)
+    with torch.no_grad():
+        log_prob, _, _ = network.evaluate(
+            {"vector": batch[keys.OBS, "vector"]},
+            continuous,
+            discrete,
+            batch.get(keys.ACTION_MASK, None),
+        )
+    batch[keys.LOG_PROB] = log_prob
+    return batch
+
+
+def one_row(spec, rewards, terminated=(), truncated=()):
+    row = segment(spec, 1, len(rewards))
+    row[keys.NEXT, keys.REWARD] = torch.tensor(rewards, dtype=torch.float32).view(1, -1, 1)
+    for t in terminated:
+        row[keys.NEXT, keys.TERMINATED][0, t] = True
+        row[keys.NEXT, keys.DONE][0, t] = True
+    for t in truncated:
+        row[keys.NEXT, keys.TRUNCATED][0, t] = True
+        row[keys.NEXT, keys.DONE][0, t] = True
+    return add_flat_action(row.exclude(*keys.METADATA))
+
+
+@pytest.mark.parametrize(
+    ("end", "expected"),
+    [("terminated", [0.59, -0.5, 1.95]), ("truncated", [0.914, -0.05, 1.95])],
+)
+def test_gae_matches_a_hand_computed_case(end, expected):
+    # V = 0.5, gamma 0.9, lambda 0.8, rewards (1, 0, 2), the episode ends after step 1.
+    # d0 = 1 + .9*.5 - .5 = .95; d1 = 0 - .5 (terminated) or 0 + .45 - .5 (truncated:
+    # bootstrap from the final observation); d2 = 2 + .45 - .5 = 1.95 (row end: bootstrap)
+    # A1 = d1 (the end cuts the trace); A0 = d0 + .9*.8*A1.
+    spec = vector_spec(branches=(2,))
+    ppo = PPO(constant_value_network(spec), settings(lambd=0.8))
+    row = one_row(spec, [1.0, 0.0, 2.0], **{end: [1]})
+    with torch.no_grad():
+        ppo.advantage(row)
+    assert row["advantage"].view(-1).tolist() == pytest.approx(expected, abs=1e-5)
+    assert row["value_target"].view(-1).tolist() == pytest.approx(
+        [a + 0.5 for a in expected], abs=1e-5
+    )
+
+
+def test_vtrace_matches_a_hand_computed_case():
+    # Uniform policy over 2 actions: log pi = log .5. Behavior log-probs log .25 and log 1
+    # give rho = 2 (clipped to 1) and .5. V = .5, gamma .9, rewards (1, 2), no end.
+    # d0 = 1*(1 + .45 - .5) = .95; d1 = .5*(2 + .45 - .5) = .975
+    # vs1 = .5 + .975 = 1.475; vs0 = .5 + .95 + .9*1*.975 = 2.3275
+    # pg advantage: t0 = 1*(1 + .9*1.475 - .5) = 1.8275; t1 = .5*(2 + .9*.5 - .5) = .975
+    spec = vector_spec(branches=(2,))
+    impala = IMPALA(constant_value_network(spec), settings("impala"))
+    row = one_row(spec, [1.0, 2.0])
+    row[keys.LOG_PROB] = torch.tensor([[math.log(0.25), 0.0]])
+    impala.vtrace(row)
+    assert row["value_target"].view(-1).tolist() == pytest.approx([2.3275, 1.475], abs=1e-5)
+    assert row["advantage"].view(-1).tolist() == pytest.approx([1.8275, 0.975], abs=1e-5)
+
+
+@pytest.mark.parametrize("trainer", ["ppo", "impala"])
+@pytest.mark.parametrize(
+    "actions", [{"continuous": 2}, {"branches": (3, 2)}, {"continuous": 1, "branches": (3,)}]
+)
+def test_losses_go_down_on_a_fixed_batch(trainer, actions):
+    spec = vector_spec(**actions)
+    torch.manual_seed(0)
+    network = ActorCritic(spec, NetworkSettings(hidden_units=32, num_layers=2))
+    algorithm = (PPO if trainer == "ppo" else IMPALA)(
+        network, settings(trainer, batch_size=64, buffer_size=64, learning_rate=3e-3)
+    )
+    batch = on_policy(network, segment(spec, 8, 16, seed=1))
+    # rewards that depend on the first observation: a learnable value function
+    batch[keys.NEXT, keys.REWARD] = batch[keys.OBS, "vector"][..., :1] * 2
+    reports = []
+    for _ in range(30 if trainer == "ppo" else 90):  # IMPALA: 1 epoch, PPO: 3
+        algorithm.add(batch.clone(), torch.zeros(8, 16, dtype=torch.int64))
+        assert algorithm.ready()
+        reports.append(algorithm.update(progress=0.0))
+    first, last = reports[0], reports[-1]
+    assert last["Losses/Value Loss"] < 0.5 * first["Losses/Value Loss"]
+    assert last["Policy/Samples"] == 8 * 16
+    assert math.isfinite(last["Losses/Policy Loss"]) and last["Policy/Entropy"] > 0
+
+
+def test_policy_gradient_raises_the_log_prob_of_advantaged_actions():
+    spec = vector_spec(branches=(3,))
+    torch.manual_seed(0)
+    network = ActorCritic(spec, NetworkSettings(hidden_units=16, num_layers=1))
+    ppo = PPO(network, settings(batch_size=64, buffer_size=64, learning_rate=1e-2, beta=0.0))
+    batch = on_policy(network, segment(spec, 8, 16, seed=2))
+    chosen = batch[keys.ACTION, keys.DISCRETE][..., 0]
+    batch[keys.NEXT, keys.REWARD] = (chosen == 2).float().unsqueeze(-1)  # action 2 pays
+    obs = {"vector": batch[keys.OBS, "vector"]}
+    before = torch.softmax(network.logits(network.features(obs)), -1)[..., 2].mean()
+    for _ in range(20):
+        ppo.add(batch.clone(), torch.zeros(8, 16, dtype=torch.int64))
+        ppo.update(progress=0.0)
+    after = torch.softmax(network.logits(network.features(obs)), -1)[..., 2].mean()
+    # the ratio to the behavior policy is clipped at 1 + epsilon (0.2): a bounded rise
+    assert after > before * 1.15
+
+
+def test_ppo_drops_steps_older_than_max_policy_lag():
+    spec = vector_spec(continuous=2)
+    ppo = PPO(ActorCritic(spec), settings(max_policy_lag=2, batch_size=8, buffer_size=16))
+    lag = torch.tensor([[0, 1, 2, 3, 4, 5, 0, 0]])
+    assert ppo.add(segment(spec, 1, 8), lag) == 5
+    assert ppo.stale_steps == 3 and ppo.buffer.steps == 5 and not ppo.ready()
+
+
+def test_policy_lag_counts_only_the_behaviors_own_updates():
+    # this behavior updated at global versions 1, 3 and 4 (another behavior made 2)
+    lag = policy_lag([1, 3, 4], torch.tensor([0, 1, 2, 3, 4]))
+    assert lag.tolist() == [3, 2, 2, 1, 0]
+    assert policy_lag([], torch.tensor([0, 7])).tolist() == [0, 0]
+
+
+SMALL = {"batch_size": 32, "buffer_size": 64}
+
+
+def test_learner_versions_weights_and_checkpoint_round_trip():
+    config = parse_config(
+        {
+            "behaviors": {
+                "A": {
+                    "trainer_type": "ppo",
+                    "hyperparameters": {"batch_size": 32, "buffer_size": 64},
+                },
+                "B": {
+                    "trainer_type": "impala",
+                    "hyperparameters": {"batch_size": 32, "buffer_size": 64},
+                },
+            }
+        }
+    )
+    learner = CentralLearner(config)
+    specs = {"A?team=0": vector_spec(continuous=2), "B?team=0": vector_spec(branches=(3,))}
+    assert learner.submit([segment(specs["A?team=0"], 2, 16, "A?team=0")]) == 0  # 32 < 64
+    version = learner.submit(
+        [segment(s, 4, 16, name) for name, s in specs.items()]  # both reach their buffer
+    )
+    assert version == 2
+    progress = learner.progress()
+    assert progress["steps"] == {"A?team=0": 96, "B?team=0": 64}
+    assert not progress["done"]
+    assert [b for b, _, _ in learner.drain_reports()] == ["A?team=0", "B?team=0"]
+    _, weights = learner.weights()
+    assert set(weights) == set(specs)
+
+    restored = CentralLearner(config)
+    restored.load_state_dict(learner.state_dict())
+    assert restored.version == 2 and restored.progress()["steps"] == progress["steps"]
+    for name in specs:
+        for key, value in restored.weights()[1][name].items():
+            assert torch.equal(value, weights[name][key]), key
+    assert restored.behaviors["A?team=0"].updates == [1]
+
+
+def test_hybrid_actions_are_shaped_right_and_masks_hold_in_the_torchrl_actor():
+    from learners.modules import FLAT_ACTION, probabilistic_actor
+
+    spec = vector_spec(continuous=2, branches=(3, 2))
+    network = ActorCritic(spec)
+    actor = probabilistic_actor(network)
+    batch = segment(spec, 64, 8)
+    batch[keys.ACTION_MASK][..., 1] = False  # branch 0, action 1 forbidden
+    dist = actor.get_dist(batch.exclude(*keys.METADATA))
+    sample = dist.sample()
+    assert sample.shape == (64, 8, 2 + 2)  # 2 continuous + one index per branch
+    assert not (sample[..., 2] == 1).any()
+    assert set(sample[..., 2].unique().tolist()) == {0.0, 2.0}
+    assert set(sample[..., 3].unique().tolist()) == {0.0, 1.0}
+    assert dist.log_prob(sample).shape == (64, 8)
+    assert dist.entropy().shape == (64, 8)
+    flat = add_flat_action(batch.exclude(*keys.METADATA))[FLAT_ACTION]
+    assert flat.shape == (64, 8, 4)
+    forbidden = flat.clone()
+    forbidden[..., 2] = 1.0
+    assert (dist.log_prob(forbidden) < -1e6).all()  # zero probability

@@ -1,0 +1,214 @@
+"""SAC (no Ray): Q losses fall on a fixed batch, masks hold in acting and in the target,
+unsupported action spaces fail in one line, checkpoints round-trip, the update schedule,
+and a short in-process run on unitysim 3DBall that clearly beats the random policy."""
+
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from learners.config import defaults, load_config
+from learners.learner import CentralLearner, policy_factory
+from learners.policies import ActorCritic, NetworkSettings, RolloutActor
+from learners.sac import MAX_GRADIENT_STEPS, SAC, next_mask
+from rollout import keys
+from tests.learners.fakes import segment, vector_spec
+
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+
+
+def settings(gamma: float = 0.99, **hyper: float):
+    base = defaults("sac")
+    return replace(
+        base,
+        gamma=gamma,
+        hyperparameters=replace(base.hyperparameters, batch_size=64, **hyper),
+        network_settings=NetworkSettings(32, 2, normalize=True),
+    )
+
+
+def build(spec, seed: int = 0, gamma: float = 0.99, **hyper: float) -> SAC:
+    torch.manual_seed(seed)
+    trainer = settings(gamma, **hyper)
+    squashed = replace(trainer.network_settings, tanh_squash=True, conditional_sigma=True)
+    return SAC(ActorCritic(spec, squashed), trainer)
+
+
+def no_lag(batch) -> torch.Tensor:
+    return torch.zeros(batch.batch_size, dtype=torch.int64)
+
+
+def masked_segment(spec, rows: int = 8, steps: int = 16):
+    """Action 3 of the single branch is forbidden on every step; a few episode ends."""
+    batch = segment(spec, rows, steps)
+    batch[keys.ACTION_MASK][..., 3] = False
+    batch[keys.ACTION, keys.DISCRETE] = torch.randint(0, 3, (rows, steps, 1))
+    batch[keys.NEXT, keys.DONE][:, 5] = True
+    batch[keys.NEXT, keys.TERMINATED][:, 5] = True
+    return batch
+
+
+@pytest.mark.parametrize("kind", ["continuous", "discrete"])
+def test_q_losses_fall_on_a_fixed_batch(kind):
+    spec = vector_spec(6, continuous=2) if kind == "continuous" else vector_spec(6, branches=(4,))
+    # A short horizon and little entropy noise: the bootstrapped targets settle fast.
+    sac = build(spec, gamma=0.5, learning_rate=1e-3, init_entcoef=0.01)
+    data = segment(spec, 8, 16)
+    sac.add(data, no_lag(data))
+    batch = sac.buffer.sample()
+    first = sac.gradient_step(batch.clone())
+    for _ in range(150):
+        last = sac.gradient_step(batch.clone())
+    assert last["q1"] < 0.6 * first["q1"] and last["q2"] < 0.6 * first["q2"]
+    assert np.isfinite(list(last.values())).all()
+
+
+def test_masked_actions_are_never_sampled_and_weigh_nothing_in_the_target():
+    spec = vector_spec(6, branches=(4,))
+    sac = build(spec)
+    data = masked_segment(spec)
+    sac.add(data, no_lag(data))
+    for _ in range(20):  # trained, so the check is not only about the initial weights
+        sac.gradient_step(sac.buffer.sample())
+
+    # Acting (the workers' numpy path): action 3 never comes out.
+    actor = RolloutActor(sac.network, seed=0)
+    obs = {"vector": np.random.default_rng(0).normal(size=(5000, 6)).astype(np.float32)}
+    mask = np.ones((5000, 4), bool)
+    mask[:, 3] = False
+    _, discrete, _ = actor.act(obs, mask)
+    assert not (discrete == 3).any() and len(np.unique(discrete)) == 3
+
+    # The target: the policy's next-state distribution gives action 3 probability 0, so
+    # even a huge target Q for it leaves the target unchanged (steps whose next state is
+    # unmasked, after an episode end or at a row end, do change).
+    batch = sac.buffer.sample()
+    dist = sac.actor.get_dist(batch[keys.NEXT])
+    blocked = ~batch[keys.NEXT, keys.ACTION_MASK][:, 3]
+    assert blocked.any() and (~blocked).any()
+    assert (dist.probs[blocked, 3] == 0).all() and (dist.probs[~blocked, 3] > 0).all()
+    with torch.no_grad():
+        before = sac.loss._compute_target(batch.clone())
+        bias = sac.loss.target_qvalue_network_params["module", "body", "4", "bias"]
+        bias.data[:, 3] += 100.0
+        after = sac.loss._compute_target(batch.clone())
+    torch.testing.assert_close(after[blocked], before[blocked])
+    unmasked_next = ~blocked & ~batch[keys.NEXT, keys.TERMINATED][:, 0]
+    assert unmasked_next.any() and (after[unmasked_next] > before[unmasked_next]).all()
+
+
+def test_next_mask_is_the_next_steps_mask_within_the_episode():
+    mask = torch.zeros(1, 4, 2, dtype=torch.bool)
+    mask[0, :, 0] = True  # every step: action 1 forbidden
+    valid = torch.tensor([[True, True, True, False]])
+    done = torch.tensor([[False, True, False, False]]).unsqueeze(-1)
+    result = next_mask(mask, valid, done)
+    assert result[0, 0].tolist() == [True, False]  # step 1 follows in the same episode
+    assert result[0, 1].tolist() == [True, True]  # episode ended: no mask seen for it
+    assert result[0, 2].tolist() == [True, True]  # step 3 is padding
+    assert result[0, 3].tolist() == [True, True]  # row end
+
+
+@pytest.mark.parametrize(
+    "continuous, branches", [(2, (3,)), (0, (3, 2)), (0, ())], ids=["hybrid", "2-branch", "none"]
+)
+def test_unsupported_action_spaces_fail_in_one_line(continuous, branches):
+    spec = vector_spec(4, continuous=continuous, branches=branches)
+    with pytest.raises(ValueError, match="SAC supports continuous actions or a single") as err:
+        SAC(ActorCritic(spec), settings())
+    assert "\n" not in str(err.value) and "use ppo" in str(err.value)
+
+
+@pytest.mark.parametrize("kind", ["continuous", "discrete"])
+def test_state_dict_round_trip(kind):
+    spec = vector_spec(6, continuous=2) if kind == "continuous" else vector_spec(6, branches=(4,))
+    sac = build(spec, seed=0)
+    data = segment(spec, 8, 16)
+    sac.add(data, no_lag(data))
+    for _ in range(5):
+        sac.gradient_step(sac.buffer.sample())
+    buffer = io.BytesIO()  # as checkpoints store it
+    torch.save({"network": sac.network.state_dict(), "algorithm": sac.state_dict()}, buffer)
+    buffer.seek(0)
+    saved = torch.load(buffer, weights_only=False)
+
+    other = build(spec, seed=1)  # different initial weights everywhere
+    other.network.load_state_dict(saved["network"])
+    other.load_state_dict(saved["algorithm"])
+    torch.testing.assert_close(other.loss.state_dict(), sac.loss.state_dict())
+    assert float(other.loss.log_alpha.detach()) == float(sac.loss.log_alpha.detach()) != 0.0
+    # Same batch, same noise: the next step (optimizer moments included) is identical.
+    batch = sac.buffer.sample()
+    torch.manual_seed(7)
+    expected = sac.gradient_step(batch.clone())
+    torch.manual_seed(7)
+    got = other.gradient_step(batch.clone())
+    assert got == pytest.approx(expected, rel=1e-5)
+    torch.testing.assert_close(other.network.state_dict(), sac.network.state_dict())
+
+
+def test_ready_waits_for_the_buffer_then_counts_new_steps_and_caps_updates():
+    spec = vector_spec(4, continuous=1)
+    sac = build(spec, buffer_init_steps=200, steps_per_update=0.5)
+    data = segment(spec, 4, 32)  # 128 steps
+    sac.add(data, no_lag(data))
+    assert not sac.ready()  # 128 < buffer_init_steps
+    sac.add(data, no_lag(data))
+    assert sac.ready() and sac.new_steps == 56  # only the steps past the warm-up count
+    report = sac.update(0.0)
+    assert report["Policy/Gradient Steps"] == 112 and report["Policy/Samples"] == 112 * 64
+    assert not sac.ready()
+    for _ in range(2):
+        sac.add(data, no_lag(data))  # 256 new steps owe 512 gradient steps
+    report = sac.update(0.0)
+    assert report["Policy/Gradient Steps"] == MAX_GRADIENT_STEPS
+    assert report["Policy/Dropped Gradient Steps"] == 512 - MAX_GRADIENT_STEPS
+    assert {"Losses/Q1 Loss", "Losses/Q2 Loss", "Policy/Entropy Coeff"} <= report.keys()
+
+
+def test_sac_behaviors_get_the_squashed_policy_everywhere():
+    config = load_config(CONFIG_DIR / "3DBall_sac.yaml")
+    factory = policy_factory(config)
+    network = factory.network("3DBall?team=0", vector_spec(8, continuous=2))
+    assert network.settings.tanh_squash and network.settings.conditional_sigma
+    assert network.log_std is None and network.log_std_head is not None
+    actor = factory("3DBall?team=0", vector_spec(8, continuous=2))  # what workers build
+    assert actor.network.settings == network.settings
+    ppo = policy_factory(load_config(CONFIG_DIR / "3DBall.yaml"))
+    assert not ppo.network("3DBall?team=0", vector_spec(8, continuous=2)).settings.tanh_squash
+
+
+@pytest.mark.integration
+def test_sac_learns_3dball_in_process(tmp_path):
+    """A minute of SAC on unitysim 3DBall: mean return well above random (about 2)."""
+    from rollout.collector import Collector
+    from rollout.ports import PortAllocator, PortRange
+    from rollout.unity import UnityConfig
+
+    torch.manual_seed(0)
+    learner = CentralLearner(load_config(CONFIG_DIR / "3DBall_sac.yaml"))
+    allocator = PortAllocator(PortRange(24600, 24649), tmp_path / "ports")
+    collector = Collector(
+        UnityConfig("unitysim:3DBall", seed=1), learner.factory, horizon=64, allocator=allocator
+    )
+    started, best, history = time.monotonic(), 0.0, []
+    try:
+        while time.monotonic() - started < 90 and best < 10:
+            version = learner.submit(collector.collect(min_rows=12))
+            if version > collector.version:
+                collector.load_weights(*learner.weights())
+            stats = collector.snapshot().behaviors.get("3DBall?team=0")
+            if stats is not None and stats.episodes >= 10:  # mean over recent episodes
+                best = max(best, stats.return_sum / stats.episodes)
+                history.append((round(time.monotonic() - started), stats.episodes, best))
+                stats.return_sum, stats.episodes = 0.0, 0
+    finally:
+        collector.close()
+    print("(seconds, episodes, best mean return):", history)
+    assert best >= 10, f"(seconds, episodes, best mean return): {history}"
