@@ -95,6 +95,10 @@ def prepare_run_dir(options: TrainOptions) -> tuple[Path, dict[str, Any] | None]
 
 def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> UnityConfig:
     build = None if options.env == "editor" else options.env
+    if build is None and options.workers != 1:
+        raise TrainingError("--env editor: there is one editor (port 5004), so use --workers 1")
+    if options.workers < 1:
+        raise TrainingError(f"--workers: at least 1, got {options.workers}")
     try:
         resolve_build(build)
     except UnityError as error:

@@ -5,8 +5,10 @@ checkpoint and no process left."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -158,3 +160,20 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
     for process in left:
         process.kill()
     assert not left, f"processes of the run outlived it: {[p.cmdline()[:3] for p in left]}"
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (TrainOptions(env="editor", workers=2), "--workers 1"),
+        (TrainOptions(workers=0), "--workers: at least 1"),
+        (TrainOptions(env="/nonexistent/Game.x86_64"), "/nonexistent/Game"),
+        (TrainOptions(config="/nonexistent.yaml"), "/nonexistent.yaml"),
+    ],
+)
+def test_bad_options_are_one_line_errors_before_anything_starts(options, message, tmp_path):
+    options = dataclasses.replace(options, results_dir=str(tmp_path))
+    with pytest.raises(TrainingError, match=re.escape(message)) as error:
+        train(options)
+    assert "\n" not in str(error.value)
+    assert not list(tmp_path.iterdir()), "nothing written for a run that could not start"
