@@ -99,8 +99,11 @@ class LearnerStats:
 
 
 class CentralLearner:
-    def __init__(self, config: RunConfig, max_steps: int | None = None) -> None:
-        torch.set_num_threads(1)  # shares the node with Unity workers: one core's worth
+    def __init__(
+        self, config: RunConfig, max_steps: int | None = None, torch_threads: int | None = None
+    ) -> None:
+        if torch_threads is not None:  # the Ray actor shares its node with Unity workers
+            torch.set_num_threads(torch_threads)
         self.config = config
         self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)
         self.factory = policy_factory(config)
@@ -197,7 +200,7 @@ def learner_actor(config: RunConfig, max_steps: int | None = None, num_cpus: flo
     """Start the learner as a Ray actor (imported here so the class itself needs no Ray)."""
     import ray
 
-    return ray.remote(CentralLearner).options(num_cpus=num_cpus).remote(config, max_steps)
+    return ray.remote(CentralLearner).options(num_cpus=num_cpus).remote(config, max_steps, 1)
 
 
 __all__ = ["Algorithm", "CentralLearner", "base_name", "learner_actor", "policy_factory"]

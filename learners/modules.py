@@ -94,7 +94,7 @@ def _categorical(logits: torch.Tensor) -> Distribution:
     return torch.distributions.Categorical(logits=logits, validate_args=False)
 
 
-class _PolicyParams(nn.Module):
+class PolicyParams(nn.Module):
     """Observations (one tensor per sensor, in the network's order) -> distribution params."""
 
     def __init__(self, network: ActorCritic) -> None:
@@ -136,7 +136,7 @@ def probabilistic_actor(network: ActorCritic) -> ProbabilisticTensorDictSequenti
     if network.branches:
         dist_keys["mask"] = keys.ACTION_MASK
     return ProbabilisticTensorDictSequential(
-        TensorDictModule(_PolicyParams(network), in_keys=obs_keys(network), out_keys=out_keys),
+        TensorDictModule(PolicyParams(network), in_keys=obs_keys(network), out_keys=out_keys),
         ProbabilisticTensorDictModule(
             in_keys=dist_keys,
             out_keys=[FLAT_ACTION],

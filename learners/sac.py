@@ -31,7 +31,7 @@ from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import TanhNormal
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate
 
-from learners.modules import _PolicyParams, obs_keys
+from learners.modules import PolicyParams, obs_keys
 from learners.policies import ActorCritic, SensorEncoder
 from learners.schedules import linear_decay
 from rollout import keys
@@ -116,7 +116,7 @@ class SAC:
         h = settings.hyperparameters
         obs = obs_keys(network)
         params = TensorDictModule(
-            _PolicyParams(network),
+            PolicyParams(network),
             in_keys=obs,
             out_keys=["loc", "scale"] if network.continuous else ["logits"],
         )

@@ -369,6 +369,26 @@ class _Owner:
         self.unity.close()
 
 
+class _HoldsOwner:
+    """What both adapters share: the owner of the Unity instance, until closed."""
+
+    _owner: _Owner | None = None
+
+    @property
+    def unity(self) -> UnityInstance:
+        return self._require().unity
+
+    def _require(self) -> _Owner:
+        if self._owner is None:
+            raise UnityError("the environment is closed")
+        return self._owner
+
+    def _close_owner(self) -> None:
+        owner, self._owner = self._owner, None
+        if owner is not None:
+            owner.close()
+
+
 def _as_obs(arrays: Sequence[np.ndarray], keys: list[str]) -> Any:
     return arrays[0] if len(arrays) == 1 else dict(zip(keys, arrays, strict=True))
 
@@ -376,7 +396,7 @@ def _as_obs(arrays: Sequence[np.ndarray], keys: list[str]) -> Any:
 # --- the single-agent environment ---------------------------------------------------------
 
 
-class UnityGymEnv(gym.Env):
+class UnityGymEnv(_HoldsOwner, gym.Env):
     """One single-agent Unity behavior as a ``gymnasium.Env``.
 
     ``build``: ``"unitysim:Basic"``, a build path, None (the editor) or a ``UnityConfig``;
@@ -415,15 +435,6 @@ class UnityGymEnv(gym.Env):
         self._mask: np.ndarray | None = None
         self._next: tuple[list[np.ndarray], np.ndarray | None] | None = None
         self._return, self._length = 0.0, 0
-
-    @property
-    def unity(self) -> UnityInstance:
-        return self._require().unity
-
-    def _require(self) -> _Owner:
-        if self._owner is None:
-            raise UnityError("the environment is closed")
-        return self._owner
 
     def _info(self) -> dict[str, Any]:
         info: dict[str, Any] = {"agent_id": int(self._require().slots.slot_ids[0])}
@@ -478,15 +489,13 @@ class UnityGymEnv(gym.Env):
         return _as_obs(obs, self._keys), reward, False, False, self._info()
 
     def close(self) -> None:
-        owner, self._owner = self._owner, None
-        if owner is not None:
-            owner.close()
+        self._close_owner()
 
 
 # --- all agents of a behavior as a vector environment -------------------------------------
 
 
-class UnityVectorEnv(VectorEnv):
+class UnityVectorEnv(_HoldsOwner, VectorEnv):
     """All agents of one behavior as a ``gymnasium.vector.VectorEnv`` (SAME_STEP autoreset).
 
     ``num_envs`` is the agent count at the first reset. When agent ``i`` ends an episode,
@@ -528,15 +537,6 @@ class UnityVectorEnv(VectorEnv):
         self._mask: np.ndarray | None = None
         self._returns = np.zeros(self.num_envs, np.float64)
         self._lengths = np.zeros(self.num_envs, np.int64)
-
-    @property
-    def unity(self) -> UnityInstance:
-        return self._require().unity
-
-    def _require(self) -> _Owner:
-        if self._owner is None:
-            raise UnityError("the environment is closed")
-        return self._owner
 
     def _info(self) -> dict[str, Any]:
         info: dict[str, Any] = {"agent_id": self._require().slots.slot_ids.copy()}
@@ -593,9 +593,7 @@ class UnityVectorEnv(VectorEnv):
         return obs, outcome.reward.copy(), outcome.terminated, outcome.truncated, info
 
     def close_extras(self, **kwargs: Any) -> None:
-        owner, self._owner = self._owner, None
-        if owner is not None:
-            owner.close()
+        self._close_owner()
 
     def __enter__(self) -> UnityVectorEnv:
         return self

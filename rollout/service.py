@@ -67,15 +67,26 @@ class ServiceMetrics:
     def policy_lag_mean(self) -> float:
         return self.policy_lag_sum / max(self.policy_lag_count, 1)
 
-    def mean_returns(self) -> dict[str, float]:
-        """Mean episode return per behavior, over every worker's finished episodes."""
-        totals: dict[str, list[float]] = {}
+    def episode_totals(self) -> dict[str, tuple[int, float, int]]:
+        """Per behavior, over live workers: (episodes, return sum, length sum) so far."""
+        totals: dict[str, tuple[int, float, int]] = {}
         for worker in self.workers:
             for name, stats in worker.behaviors.items():
-                entry = totals.setdefault(name, [0.0, 0.0])
-                entry[0] += stats.return_sum
-                entry[1] += stats.episodes
-        return {name: total / count for name, (total, count) in totals.items() if count}
+                episodes, returns, lengths = totals.get(name, (0, 0.0, 0))
+                totals[name] = (
+                    episodes + stats.episodes,
+                    returns + stats.return_sum,
+                    lengths + stats.length_sum,
+                )
+        return totals
+
+    def mean_returns(self) -> dict[str, float]:
+        """Mean episode return per behavior, over every worker's finished episodes."""
+        return {
+            name: returns / episodes
+            for name, (episodes, returns, _) in self.episode_totals().items()
+            if episodes
+        }
 
 
 class RolloutService:

@@ -14,6 +14,7 @@ behavior.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,12 @@ _RATE_TAGS = {
 }
 
 
+def next_multiple(step: int, every: int) -> int:
+    """The first multiple of ``every`` after ``step``: when a periodic action is due next."""
+    every = max(every, 1)
+    return (step // every + 1) * every
+
+
 @dataclass
 class _Window:
     """Per behavior: totals at the last summary and update metrics since."""
@@ -50,7 +57,7 @@ class Summaries:
     def __init__(
         self,
         run_dir: Path,
-        summary_freq: dict[str, int] | int,
+        summary_freq: Callable[[str], int],
         progress: bool = True,
         console: Console | None = None,
     ) -> None:
@@ -74,11 +81,6 @@ class Summaries:
             self.live.stop()
         for writer in self.writers.values():
             writer.close()
-
-    def _freq(self, behavior: str) -> int:
-        if isinstance(self.summary_freq, int):
-            return self.summary_freq
-        return self.summary_freq.get(behavior, 10_000)
 
     def observe(
         self,
@@ -105,19 +107,20 @@ class Summaries:
             window = self._window(behavior, progress["steps"].get(behavior, 0))
             for key, value in report.items():
                 window.losses.setdefault(key, []).append(value)
-        totals = _episode_totals(metrics)
+        totals = metrics.episode_totals()
         for behavior, step in progress["steps"].items():
             window = self._window(behavior, step)
             if step >= window.next_step:
                 self._write(behavior, step, window, totals.get(behavior), metrics)
-                window.next_step = (step // self._freq(behavior) + 1) * self._freq(behavior)
+                window.next_step = next_multiple(step, self.summary_freq(behavior))
         if self.live is not None:
             self.live.update(self._table(metrics, progress), refresh=True)
 
     def _window(self, behavior: str, step: int) -> _Window:
         if behavior not in self.windows:
-            freq = self._freq(behavior)
-            self.windows[behavior] = _Window(next_step=(step // freq + 1) * freq)
+            self.windows[behavior] = _Window(
+                next_step=next_multiple(step, self.summary_freq(behavior))
+            )
         return self.windows[behavior]
 
     def _write(
@@ -182,20 +185,6 @@ class Summaries:
             name: {"mean_reward": w.last_reward, "episode_length": w.last_length}
             for name, w in self.windows.items()
         }
-
-
-def _episode_totals(metrics: ServiceMetrics) -> dict[str, tuple[int, float, int]]:
-    """Cumulative (episodes, return sum, length sum) per behavior over live workers."""
-    totals: dict[str, tuple[int, float, int]] = {}
-    for worker in metrics.workers:
-        for name, stats in worker.behaviors.items():
-            episodes, returns, lengths = totals.get(name, (0, 0.0, 0))
-            totals[name] = (
-                episodes + stats.episodes,
-                returns + stats.return_sum,
-                lengths + stats.length_sum,
-            )
-    return totals
 
 
 def _safe(behavior: str) -> str:

@@ -16,7 +16,7 @@ import json
 import logging
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +30,7 @@ from learners import checkpoint
 from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
 from learners.learner import learner_actor, policy_factory
 from rollout.service import RolloutError, RolloutService, ServiceConfig
-from rollout.summaries import Summaries
+from rollout.summaries import Summaries, next_multiple
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,7 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
     engine = EngineSettings(**{k: v for k, v in config.engine.items() if k in engine_fields})
     return UnityConfig(
         build,
+        no_graphics=bool(config.engine.get("no_graphics", True)),  # the one not in EngineSettings
         seed=options.seed,
         num_areas=options.num_areas,
         engine=engine,
@@ -156,21 +157,19 @@ class Checkpoints:
 
     def __init__(self, run_dir: Path, interval: int, keep: int, start_step: int) -> None:
         self.directory = run_dir / "checkpoints"
-        self.interval, self.keep = max(interval, 1), max(keep, 1)
-        self.next_step = (start_step // self.interval + 1) * self.interval
-        self.last: Path | None = None
+        self.interval, self.keep = interval, max(keep, 1)
+        self.next_step = next_multiple(start_step, interval)
 
     def due(self, step: int) -> bool:
         return step >= self.next_step
 
     def save(self, state: dict[str, Any], meta: dict[str, Any]) -> Path:
         step = int(state["step"])
-        path = self.directory / f"step-{step:010d}.pt"
-        self.last = checkpoint.save(path, {**state, "meta": meta})
-        self.next_step = (step // self.interval + 1) * self.interval
+        path = checkpoint.save(self.directory / f"step-{step:010d}.pt", {**state, "meta": meta})
+        self.next_step = next_multiple(step, self.interval)
         for old in sorted(self.directory.glob("step-*.pt"))[: -self.keep]:
             old.unlink(missing_ok=True)
-        return self.last
+        return path
 
 
 def train(options: TrainOptions) -> TrainResult:
@@ -217,7 +216,6 @@ def _run(
         max(s.keep_checkpoints for s in behaviors),
         int(resume["step"]) if resume else 0,
     )
-    summary_freq = {name: s.summary_freq for name, s in config.behaviors.items()}
     service, learner = build_system(options, config, unity, resume)
     started = time.perf_counter()
     deadline = started + options.max_seconds if options.max_seconds else None
@@ -227,7 +225,7 @@ def _run(
         stop_on_signals() as received,
         service,
         Summaries(
-            run_dir, summary_freq or config.default.summary_freq, options.progress
+            run_dir, lambda behavior: config.for_behavior(behavior).summary_freq, options.progress
         ) as summaries,
     ):
         while not received:
@@ -272,14 +270,12 @@ def _run(
     return result
 
 
-def _plain(config: RunConfig) -> dict[str, Any]:
-    def convert(value: Any) -> Any:
-        if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            return {f.name: convert(getattr(value, f.name)) for f in dataclasses.fields(value)}
-        if isinstance(value, dict | tuple | list) or hasattr(value, "items"):
-            if hasattr(value, "items"):
-                return {str(k): convert(v) for k, v in value.items()}
-            return [convert(v) for v in value]
-        return value
-
-    return convert(config)
+def _plain(value: Any) -> Any:
+    """Dataclasses, mappings and sequences as plain YAML data (for configuration.yaml)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, tuple | list):
+        return [_plain(v) for v in value]
+    return value

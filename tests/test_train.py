@@ -177,3 +177,35 @@ def test_bad_options_are_one_line_errors_before_anything_starts(options, message
         train(options)
     assert "\n" not in str(error.value)
     assert not list(tmp_path.iterdir()), "nothing written for a run that could not start"
+
+
+def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
+    from learners.config import parse_config
+    from learners.learner import LearnerStats
+    from rollout.service import ServiceMetrics
+    from rollout.summaries import Summaries
+
+    config = parse_config({"behaviors": {"A": {"summary_freq": 100}, "B": {"summary_freq": 250}}})
+    written: list[tuple[str, int]] = []
+    with Summaries(
+        tmp_path, lambda b: config.for_behavior(b).summary_freq, progress=False
+    ) as summaries:
+        summaries._write = lambda behavior, step, *rest: written.append((behavior, step))
+        for step in range(0, 601, 50):
+            progress = {
+                "steps": {"A?team=0": step, "B?team=0": step},
+                "version": 0,
+                "stats": LearnerStats(),
+            }
+            summaries.observe(ServiceMetrics(), progress, [])
+    assert [s for b, s in written if b == "A?team=0"] == [100, 200, 300, 400, 500, 600]
+    assert [s for b, s in written if b == "B?team=0"] == [250, 500]
+
+
+def test_engine_settings_reach_the_unity_config(tmp_path):
+    from learners.config import parse_config
+    from rollout.train import unity_config
+
+    config = parse_config({"engine_settings": {"time_scale": 5, "no_graphics": False}})
+    unity = unity_config(TrainOptions(), config, tmp_path)
+    assert unity.engine.time_scale == 5 and unity.no_graphics is False
