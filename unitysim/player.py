@@ -96,25 +96,24 @@ class Player:
             target = f"localhost:{self.config.port}"
             options = [("grpc.enable_http_proxy", 0), ("grpc.max_receive_message_length", -1)]
             with grpc.insecure_channel(target, options=options) as channel:
-                exchange: Callable[..., messages.UnityMessageProto] = channel.unary_unary(
+                exchange: Callable[..., bytes] = channel.unary_unary(
                     EXCHANGE,
                     request_serializer=wire.to_bytes,  # steps are sent as encoded bytes
-                    response_deserializer=messages.UnityMessageProto.FromString,
+                    response_deserializer=None,  # and replies read from their bytes
                 )
                 return self._guarded(exchange)
         with H2Channel("localhost", self.config.port, EXCHANGE) as h2:
-            parse = messages.UnityMessageProto.FromString
 
             def h2_exchange(
                 message: messages.UnityMessageProto | bytes,
                 wait_for_ready: bool = False,
                 timeout: float | None = None,
-            ) -> messages.UnityMessageProto:
-                return parse(h2.call(wire.to_bytes(message), timeout, wait_for_ready))
+            ) -> bytes:
+                return h2.call(wire.to_bytes(message), timeout, wait_for_ready)
 
             return self._guarded(h2_exchange)
 
-    def _guarded(self, exchange: Callable[..., messages.UnityMessageProto]) -> int:
+    def _guarded(self, exchange: Callable[..., bytes]) -> int:
         """Play; an RPC error ends the session (exit 1 if our message was too large)."""
         try:
             return self._play(exchange)
@@ -126,7 +125,7 @@ class Player:
             log.info("connection to the trainer ended (%s): quitting", code)
             return 0
 
-    def _play(self, exchange: Callable[..., messages.UnityMessageProto]) -> int:
+    def _play(self, exchange: Callable[..., bytes]) -> int:
         version = self.faults.communication_version or messages.COMMUNICATION_VERSION
         log.info("connecting to localhost:%d as %s", self.config.port, self.config.env_name)
         try:
@@ -143,10 +142,10 @@ class Player:
                 error.code() if hasattr(error, "code") else error,
             )
             return 1
-        if reply.header.status != 200:
-            log.info("trainer refused the handshake (status %d)", reply.header.status)
+        init = wire.read_input(reply, {})
+        if init.status != 200:
+            log.info("trainer refused the handshake (status %d)", init.status)
             return 0
-        init = messages.parse_input(reply, {})
         log.info(
             "handshake: python communication %s, seed %s, num_areas %s",
             init.communication_version,
@@ -156,7 +155,7 @@ class Player:
         session = Session(self.env_class, init.seed or 0, init.num_areas or 1)
         reply = exchange(messages.status_message(200))  # U2: the first real input comes back
         while True:
-            request = messages.parse_input(reply, session.behaviors)
+            request = wire.read_input(reply, session.behaviors)
             if request.status != 200:
                 log.info("trainer closed the session (status %d)", request.status)
                 return 0

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from google.protobuf.message import DecodeError
 from mlagents_envs.communicator_objects.unity_message_pb2 import UnityMessageProto
 
 from unitysim import messages, png, wire
@@ -334,6 +335,84 @@ def test_parse_input_handshake_reply():
     assert (parsed.seed, parsed.num_areas, parsed.communication_version) == (42, 3, "1.5.0")
 
 
+# --- wire.read_input: Python's bytes read without protobuf --------------------------------
+
+DISCRETE = Behavior("Discrete?team=0", (VECTOR,), branches=(3, 5, 2))
+NO_ACTIONS = Behavior("Idle?team=0", (VECTOR,))
+
+
+def assert_same_input(parsed: messages.Input, reference: messages.Input) -> None:
+    assert (parsed.status, parsed.command, parsed.side_channel) == (
+        reference.status,
+        reference.command,
+        reference.side_channel,
+    )
+    assert (parsed.seed, parsed.num_areas) == (reference.seed, reference.num_areas)
+    assert parsed.actions.keys() == reference.actions.keys()
+    for name, actions in parsed.actions.items():
+        for got, want in zip(
+            (actions.continuous, actions.discrete),
+            (reference.actions[name].continuous, reference.actions[name].discrete),
+            strict=True,
+        ):
+            assert got.dtype == want.dtype and got.shape == want.shape
+            np.testing.assert_array_equal(got, want)
+
+
+def test_read_input_takes_mlagents_step_inputs_without_protobuf():
+    rng = np.random.default_rng(12)
+    behaviors = {b.name: b for b in (CONTINUOUS, HYBRID, DISCRETE, NO_ACTIONS)}
+    for n in (0, 1, 12, 40):
+        ball = rng.normal(size=(n, 2)).astype(np.float32)
+        ball[: n // 3, 0] = np.nan
+        blob = step_input(
+            {
+                CONTINUOUS.name: (ball, None),
+                HYBRID.name: (
+                    rng.normal(size=(n, 1)).astype(np.float32),
+                    rng.integers(0, 3, (n, 2)).astype(np.int32),
+                ),
+                DISCRETE.name: (None, rng.integers(0, 5, (n, 3)).astype(np.int32)),
+                "Unknown?team=0": (ball, None),
+            }
+        )
+        reference = messages.parse_input(UnityMessageProto.FromString(blob), behaviors)
+        assert_same_input(wire._read_step(blob, behaviors), reference)  # the fast path
+        assert_same_input(wire.read_input(blob, behaviors), reference)
+
+
+def test_read_input_leaves_other_messages_to_protobuf():
+    behaviors = {b.name: b for b in (CONTINUOUS, DISCRETE)}
+    handshake = UnityMessageProto()
+    handshake.header.status = 200
+    init = handshake.unity_input.rl_initialization_input
+    init.seed, init.num_areas, init.communication_version = 42, 3, "1.5.0"
+    lean = UnityMessageProto()  # continuous actions only: no deprecated vector
+    lean.header.status = 200
+    lean.unity_input.rl_input.agent_actions[CONTINUOUS.name].value.add(continuous_actions=[1, 2])
+    wide = step_input({DISCRETE.name: (None, np.array([[1, 200, 3]], np.int32))})  # 2-byte varint
+    closing = messages.status_message(400)
+    for blob in (handshake.SerializeToString(), lean.SerializeToString(), wide):
+        with pytest.raises(wire._Unusual):
+            wire._read_step(blob, behaviors)
+    for blob in (handshake.SerializeToString(), lean.SerializeToString(), wide, b""):
+        reference = messages.parse_input(UnityMessageProto.FromString(blob), behaviors)
+        assert_same_input(wire.read_input(blob, behaviors), reference)
+    parsed = wire.read_input(closing.SerializeToString(), behaviors)
+    assert parsed.status == 400 and parsed.actions == {}
+    init_parsed = wire.read_input(handshake.SerializeToString(), {})
+    assert (init_parsed.seed, init_parsed.communication_version) == (42, "1.5.0")
+
+
+def test_read_input_errors_as_protobuf_does():
+    blob = step_input({CONTINUOUS.name: (np.zeros((3, 3), np.float32), None)})  # 3 for 2
+    with pytest.raises(ValueError):
+        wire.read_input(blob, {CONTINUOUS.name: CONTINUOUS})
+    good = step_input({CONTINUOUS.name: (np.zeros((3, 2), np.float32), None)})
+    with pytest.raises(DecodeError):
+        wire.read_input(good[:-3], {CONTINUOUS.name: CONTINUOUS})  # truncated
+
+
 # --- AgentInfos.build (every message goes through it) --------------------------------------
 
 
@@ -351,6 +430,16 @@ def test_build_broadcasts_scalars_and_copies_arrays():
     mixed = AgentInfos.build([[1], [2]], [[[1.0], [2.0]]], reward=[0.5], done=np.array([1, 0]))
     assert mixed.agent_id.shape == (2,) and mixed.obs[0].dtype == np.float32
     assert mixed.reward.tolist() == [0.5, 0.5] and mixed.done.tolist() == [True, False]
+
+
+def test_build_shares_constant_fields_read_only_and_keeps_signed_zero():
+    first = AgentInfos.build(np.arange(3), [np.zeros((3, 1), np.float32)])
+    second = AgentInfos.build(np.arange(3), [np.zeros((3, 1), np.float32)])
+    assert first.done is second.done and first.group_reward is second.group_reward
+    with pytest.raises(ValueError):
+        first.done[0] = True  # shared: nobody may write it
+    negative = AgentInfos.build(np.arange(3), [np.zeros((3, 1), np.float32)], reward=-0.0)
+    assert np.signbit(negative.reward).all() and not np.signbit(first.reward).any()
 
 
 def test_sensors_and_behaviors_built_with_lists_still_encode():

@@ -131,8 +131,9 @@ class Ball3D(SimEnv):
 
     def _act(self, continuous: np.ndarray) -> None:
         """Decisions are always for every agent, in id order; NaN means no turn."""
-        action = np.clip(continuous, -1.0, 1.0)
-        if np.isnan(action).any():
+        action = np.minimum(continuous, 1.0)  # (np.clip's Python wrapper costs more)
+        np.maximum(action, -1.0, out=action)
+        if np.count_nonzero(np.isnan(action)):
             action = np.nan_to_num(action, nan=0.0)
         np.multiply(action.T, TURN * AXIS_SIGN, out=self.turn)
         np.sign(self.turn, out=self.direction)

@@ -15,6 +15,8 @@ the EnvironmentParameters side channel fills.
 
 from __future__ import annotations
 
+import functools
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -142,13 +144,21 @@ class AgentInfos:
 
 
 def _rows(value: np.ndarray | float | bool, dtype: type, n: int) -> np.ndarray:
-    """``value`` as a fresh (n,) array of ``dtype``: scalars broadcast, arrays copied."""
+    """``value`` as (n,) array of ``dtype`` that nobody else writes: arrays are copied,
+    scalars broadcast (to a shared read-only array: most fields are constant)."""
     if isinstance(value, np.ndarray):
         if value.shape == (n,):
             return value.astype(dtype)  # always a copy
-    elif isinstance(value, (bool, int, float)):
-        return np.full(n, value, dtype=dtype)
+    elif isinstance(value, (bool, int, float)) and math.copysign(1.0, value) > 0:
+        return _constant_rows(value, dtype, n)  # (-0.0 == 0.0 would share a cache entry)
     return np.broadcast_to(np.asarray(value, dtype=dtype), (n,)).copy()
+
+
+@functools.lru_cache(maxsize=256)
+def _constant_rows(value: float, dtype: type, n: int) -> np.ndarray:
+    rows = np.full(n, value, dtype=dtype)
+    rows.flags.writeable = False
+    return rows
 
 
 def _observation_rows(obs: np.ndarray, n: int) -> np.ndarray:
