@@ -381,6 +381,35 @@ def test_read_input_takes_mlagents_step_inputs_without_protobuf():
         assert_same_input(wire.read_input(blob, behaviors), reference)
 
 
+def test_read_input_fast_path_takes_what_mlagents_itself_sends():
+    """The layout the fast path expects, from mlagents_envs' own step-input builder."""
+    from mlagents_envs.base_env import ActionTuple
+    from mlagents_envs.environment import UnityEnvironment
+    from mlagents_envs.side_channel.side_channel_manager import SideChannelManager
+
+    rng = np.random.default_rng(13)
+    env = object.__new__(UnityEnvironment)
+    env._env_state = {CONTINUOUS.name: ([0] * 12, []), HYBRID.name: ([0] * 3, [])}
+    env._side_channel_manager = SideChannelManager([])
+    actions = {
+        CONTINUOUS.name: ActionTuple(continuous=rng.normal(size=(12, 2)).astype(np.float32)),
+        HYBRID.name: ActionTuple(
+            continuous=rng.normal(size=(3, 1)).astype(np.float32),
+            discrete=rng.integers(0, 2, size=(3, 2)).astype(np.int32),
+        ),
+    }
+    message = UnityMessageProto()
+    message.header.status = 200
+    message.unity_input.CopyFrom(UnityEnvironment._generate_step_input(env, actions))
+    blob = message.SerializeToString()
+    behaviors = {b.name: b for b in (CONTINUOUS, HYBRID)}
+    fast = wire._read_step(blob, behaviors)
+    assert_same_input(fast, messages.parse_input(message, behaviors))
+    np.testing.assert_array_equal(
+        fast.actions[CONTINUOUS.name].continuous, actions[CONTINUOUS.name].continuous
+    )
+
+
 def test_read_input_leaves_other_messages_to_protobuf():
     behaviors = {b.name: b for b in (CONTINUOUS, DISCRETE)}
     handshake = UnityMessageProto()
