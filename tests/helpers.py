@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import time
+from collections.abc import Iterator
+from pathlib import Path
 
 import psutil
+
+from rollout.ports import PortAllocator, PortRange
 
 
 def free_port() -> int:
@@ -26,3 +31,14 @@ def wait_gone(pid: int, seconds: float) -> bool:
             return True
         time.sleep(0.05)
     return False
+
+
+@contextlib.contextmanager
+def leak_checked_allocator(
+    tmp_path: Path, first: int, last: int, **kwargs: float
+) -> Iterator[PortAllocator]:
+    """A port allocator with its own range and registry that fails the test if a port is
+    still leased at the end (every test's ports must go back)."""
+    allocator = PortAllocator(PortRange(first, last), tmp_path / "ports", **kwargs)
+    yield allocator
+    assert allocator.leases() == {}, "a test left a port leased"

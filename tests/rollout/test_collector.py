@@ -13,18 +13,17 @@ import torch
 from learners.policies import actor_factory
 from rollout import keys
 from rollout.collector import Collector
-from rollout.ports import PortAllocator, PortRange
 from rollout.specs import step_spec
 from rollout.unity import UnityConfig
+from tests.helpers import leak_checked_allocator
 
 pytestmark = pytest.mark.integration
 
 
 @pytest.fixture
 def allocator(tmp_path):
-    allocator = PortAllocator(PortRange(24200, 24299), tmp_path / "ports")
-    yield allocator
-    assert allocator.leases() == {}, "a test left a port leased"
+    with leak_checked_allocator(tmp_path, 24200, 24299) as allocator:
+        yield allocator
 
 
 def check_echo_segment(segment, spec) -> int:

@@ -15,18 +15,16 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
 from rollout.gymnasium_env import AgentSetError, UnityGymEnv, UnityVectorEnv
-from rollout.ports import PortAllocator, PortRange
 from rollout.unity import UnityConfig, UnityError
-from tests.helpers import wait_gone
+from tests.helpers import leak_checked_allocator, wait_gone
 
 pytestmark = pytest.mark.integration
 
 
 @pytest.fixture
 def allocator(tmp_path):
-    allocator = PortAllocator(PortRange(24500, 24599), tmp_path / "ports")
-    yield allocator
-    assert allocator.leases() == {}, "a test left a port leased"
+    with leak_checked_allocator(tmp_path, 24500, 24599) as allocator:
+        yield allocator
 
 
 def one_line(error: pytest.ExceptionInfo) -> str:

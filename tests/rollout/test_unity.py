@@ -16,7 +16,7 @@ import pytest
 
 from rollout.ports import PortAllocator, PortRange
 from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance, resolve_build
-from tests.helpers import wait_gone
+from tests.helpers import leak_checked_allocator, wait_gone
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[2]
@@ -25,9 +25,8 @@ BALL = "3DBall?team=0"
 
 @pytest.fixture
 def allocator(tmp_path):
-    allocator = PortAllocator(PortRange(24000, 24099), tmp_path / "ports", quarantine_s=60)
-    yield allocator
-    assert allocator.leases() == {}, "a test left a port leased"
+    with leak_checked_allocator(tmp_path, 24000, 24099, quarantine_s=60) as allocator:
+        yield allocator
 
 
 def test_instance_runs_on_a_confirmed_loopback_port(allocator):
