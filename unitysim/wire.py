@@ -302,7 +302,7 @@ def read_input(data: bytes, behaviors: dict[str, Behavior]) -> Input:
     """:func:`unitysim.messages.parse_input` of ``data``, without protobuf for step inputs."""
     try:
         return _read_step(data, behaviors)
-    except (_Unusual, IndexError):
+    except (_Unusual, IndexError, UnicodeDecodeError):  # (protobuf says what is wrong)
         return parse_input(UnityMessageProto.FromString(data), behaviors)
 
 

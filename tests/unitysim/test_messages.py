@@ -440,6 +440,9 @@ def test_read_input_errors_as_protobuf_does():
     good = step_input({CONTINUOUS.name: (np.zeros((3, 2), np.float32), None)})
     with pytest.raises(DecodeError):
         wire.read_input(good[:-3], {CONTINUOUS.name: CONTINUOUS})  # truncated
+    named = step_input({"Ball?team=0": (np.zeros((1, 2), np.float32), None)})
+    with pytest.raises(DecodeError):  # a behavior name that is not UTF-8
+        wire.read_input(named.replace(b"Ball", b"B\xffll"), {CONTINUOUS.name: CONTINUOUS})
 
 
 # --- AgentInfos.build (every message goes through it) --------------------------------------
