@@ -46,7 +46,7 @@ RUN groupadd --gid 1000 rollout \
 
 # Everything the package needs at install and run time (config/: the shipped trainer configs).
 WORKDIR /opt/unity-rollout
-COPY pyproject.toml constraints.txt README.md ./
+COPY pyproject.toml setup.py constraints.txt README.md ./
 COPY scripts/setup-venv.sh scripts/setup-venv.sh
 COPY rollout/ rollout/
 COPY learners/ learners/
@@ -58,9 +58,15 @@ COPY config/ config/
 # the image does not pull several GB of CUDA libraries. EXTRAS= (empty): runtime packages
 # only, no test tools.
 ARG PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu
-# The profile.d line is literal on purpose: login shells (KubeRay's bash -lc) expand it.
-# hadolint ignore=SC2016
-RUN PYTHON=python3.11 VENV=/opt/venv EXTRAS= PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
+# gcc and libc6-dev build unitysim's C 3DBall physics (setup.py) and leave in the same
+# layer; `doctor` then shows "3DBall physics C". The profile.d line is literal on purpose:
+# login shells (KubeRay's bash -lc) expand it.
+# hadolint ignore=SC2016,DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && PYTHON=python3.11 VENV=/opt/venv EXTRAS= PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
+    && apt-get purge -y --auto-remove gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/* \
     && /opt/venv/bin/unity-rollout doctor \
     && printf 'export VIRTUAL_ENV=/opt/venv\nexport PATH=/opt/venv/bin:$PATH\n' \
         > /etc/profile.d/unity-rollout.sh

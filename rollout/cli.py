@@ -35,6 +35,10 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
         print(f"{dist:<17} {version}")
     print(f"protobuf backend  {api_implementation.Type()}")
     print(f"compat fixes      {', '.join(fixes) or 'none needed'}")
+    from unitysim.envs.ball3d import compiled_physics
+
+    physics = "C" if compiled_physics() else "numpy (no C build, or UNITYSIM_PHYSICS=numpy)"
+    print(f"3DBall physics    {physics}")
     return 0
 
 

@@ -11,7 +11,7 @@ cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3.11}
 VENV=${VENV:-.venv}
 EXTRAS=${EXTRAS-dev}  # EXTRAS= (empty): runtime only
-inputs=(pyproject.toml constraints.txt scripts/setup-venv.sh)
+inputs=(pyproject.toml setup.py constraints.txt scripts/setup-venv.sh unitysim/envs/_ball3d.c)
 want="$(cat "${inputs[@]}" | sha256sum | cut -c1-16)-$EXTRAS"
 
 if [[ -f "$VENV/.installed" && "$(cat "$VENV/.installed")" == "$want" ]]; then

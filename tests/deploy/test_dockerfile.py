@@ -55,8 +55,14 @@ def test_hadolint_passes():
 def test_installs_through_the_readme_script_and_constraints():
     runs = " ".join(args_of("RUN"))
     copied = " ".join(args_of("COPY"))
-    for needed in ("constraints.txt", "pyproject.toml", "scripts/setup-venv.sh"):
+    for needed in ("constraints.txt", "pyproject.toml", "setup.py", "scripts/setup-venv.sh"):
         assert needed in copied, f"the image must COPY {needed}"
+    # Every input of the installer (its reinstall stamp) is in the image.
+    script = (ROOT / "scripts/setup-venv.sh").read_text()
+    inputs = re.search(r"^inputs=\((.*)\)$", script, re.M)
+    assert inputs, "setup-venv.sh lists its inputs"
+    for needed in inputs[1].split():
+        assert any(needed == c or needed.startswith(c) for c in copied.split()), needed
     assert "scripts/setup-venv.sh" in runs, "the image must install through setup-venv.sh"
     # No other way in for a package: no pip, uv or conda call outside the script.
     assert not re.search(r"\b(pip3?|uv|conda|mamba)\b\s+install", runs), runs

@@ -10,9 +10,11 @@ every 5 steps with the last action repeated in between: a perfect episode earns 
 Environment parameters, as in the example: ``gravity`` (9.81), ``mass`` (1; a heavier
 ball is pushed less by the moving platform) and ``scale`` (1; the ball's size).
 
-The stand-in must never be what limits a trainer's throughput, so one physics step is a
-few dozen in-place numpy operations on a single (8, n) float64 state array, whose rows are
-laid out for the maths rather than for the observation: the tilts are stored in radians
+The stand-in must never be what limits a trainer's throughput, so one physics step is one
+call into C (``_ball3d.c``, built by setup.py where a C compiler is) or, without it, a few
+dozen in-place numpy operations with the same results (``_move``), on a single (8, n)
+float64 state array whose rows are laid out for the maths rather than for the
+observation: the tilts are stored in radians
 and signed so that both horizontal axes obey the same equations (``sigma = [-tilt_z,
 tilt_x]``: the slope then pushes ``x`` by ``sin(sigma[0])`` and ``z`` by ``sin(sigma[1])``,
 and the surface height is ``x * tan(sigma[0]) + z * tan(sigma[1])``). Episode lengths are
@@ -23,7 +25,10 @@ still inside the limit in the direction of the turn (so it may overshoot by one 
 
 from __future__ import annotations
 
+import logging
+import os
 from collections.abc import Mapping
+from types import ModuleType
 
 import numpy as np
 
@@ -58,6 +63,18 @@ OBS_ROWS = np.array([0, 1, 2, 4, 3, 5, 7, 6])
 AXIS_SIGN = np.array([[-1.0], [1.0]])
 
 
+def compiled_physics() -> ModuleType | None:
+    """The C physics (``_ball3d.c``) where it was built and not switched off with
+    ``UNITYSIM_PHYSICS=numpy``; None means the numpy methods below."""
+    if os.environ.get("UNITYSIM_PHYSICS", "").lower() == "numpy":
+        return None
+    try:
+        from unitysim.envs import _ball3d  # an optional build product (setup.py)
+    except ImportError:
+        return None
+    return _ball3d
+
+
 class Ball3D(SimEnv):
     name = "3DBall"
     behaviors = (
@@ -78,6 +95,9 @@ class Ball3D(SimEnv):
         self.turn = np.zeros((2, n), dtype=np.float64)  # signed radians per step, as sigma
         self.direction = np.zeros((2, n), dtype=np.float64)  # sign(turn)
         self.reward = np.zeros(n, dtype=np.float32)
+        self.fell = np.zeros(n, dtype=bool)  # written by the compiled step
+        self.kernel = compiled_physics()
+        logging.getLogger("unitysim").info("3DBall physics: %s", "C" if self.kernel else "numpy")
         self.start = np.zeros(n, dtype=np.int64)  # academy step at which the episode began
         self.academy_steps = 0
         self.next_interrupt = MAX_STEP  # first academy step at which some agent hits MaxStep
@@ -120,6 +140,10 @@ class Ball3D(SimEnv):
         self.next_interrupt = int(self.start.min()) + MAX_STEP
 
     def _observe(self) -> np.ndarray:
+        if self.kernel is not None:
+            obs = np.empty((len(self.ids), 8), dtype=np.float32)
+            self.kernel.observe(self.state, obs)
+            return obs
         rows = self.state[OBS_ROWS]
         rows[:2] = np.sin(rows[:2] * 0.5) * AXIS_SIGN  # quaternion z and x components
         return np.ascontiguousarray(rows.T, dtype=np.float32)
@@ -174,10 +198,31 @@ class Ball3D(SimEnv):
     def _physics_step(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """One FixedUpdate: act, move the ball, and judge; returns (fell, interrupted), each
         None where no agent fell / no agent can have reached MaxStep (the common case)."""
+        fell = self._move() if self.kernel is None else self._move_compiled()
+        interrupted = None
+        if self.academy_steps >= self.next_interrupt:
+            interrupted = self.academy_steps - self.start >= MAX_STEP
+            if fell is not None:
+                interrupted &= ~fell
+            interrupted = interrupted if np.count_nonzero(interrupted) else None
+        return fell, interrupted
+
+    def _move_compiled(self) -> np.ndarray | None:
+        """``_move`` in C: the same equations in the same order, one loop over the agents."""
+        fallen = self.kernel.physics_step(  # type: ignore[union-attr]
+            self.state, self.turn, self.reach, self.reward, self.fell,
+            self.radius, self.fall_dv, self.slope_dv, self.shove_dv,
+            DT, MAX_SIGMA, HALF_WIDTH, RESTING_TOLERANCE,
+        )  # fmt: skip
+        return self.fell if fallen else None
+
+    def _move(self) -> np.ndarray | None:
+        """Tilt, move and judge every agent; returns which balls fell, None if none did."""
         # Turn while inside the limit in the direction of the turn (Unity's rule).
         turn = self.turn * (self.direction * self.sigma < MAX_SIGMA)
         self.sigma += turn
-        sin, tan = np.sin(self.sigma), np.tan(self.sigma)
+        sin = np.sin(self.sigma)
+        tan = sin / np.cos(self.sigma)  # as the C step computes it (np.tan may round apart)
 
         xz, y = self.xz, self.y
         slope = xz * tan
@@ -201,11 +246,7 @@ class Ball3D(SimEnv):
         np.maximum(reach[0], reach[1], out=self.reach)
         fell = (self.reach > 3.0) | (y < -2.0)
         self.reward.fill(0.1)  # SetReward, not AddReward; -1 below for balls that fell
-        interrupted = None
-        if self.academy_steps >= self.next_interrupt:
-            interrupted = ~fell & (self.academy_steps - self.start >= MAX_STEP)
-            interrupted = interrupted if np.count_nonzero(interrupted) else None
         if not np.count_nonzero(fell):
-            return None, interrupted
+            return None
         self.reward[fell] = -1.0
-        return fell, interrupted
+        return fell

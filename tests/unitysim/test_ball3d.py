@@ -1,0 +1,193 @@
+"""3DBall: its C physics against the numpy twin (in-process and through the player), and
+MaxStep."""
+
+from __future__ import annotations
+
+import math
+import shutil
+import sysconfig
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.unitysim.test_protocol import rollout_3dball
+from unitysim.envs import ball3d
+from unitysim.envs.ball3d import Ball3D
+from unitysim.envs.base import Actions, AgentInfos, Parameters
+
+BALL = "3DBall?team=0"
+Policy = Callable[[np.ndarray, np.random.Generator], np.ndarray]
+
+kernel = ball3d.compiled_physics()
+needs_kernel = pytest.mark.skipif(kernel is None, reason="unitysim.envs._ball3d is not built")
+
+
+def libm_agrees_with_numpy() -> bool:
+    """Both paths take sin and cos from libm where numpy does not use its own SIMD
+    versions; only then must their trajectories agree to the last bit."""
+    probe = np.random.default_rng(0).uniform(-0.6, 0.6, 4096)
+    return np.array_equal(np.sin(probe), [math.sin(v) for v in probe]) and np.array_equal(
+        np.cos(probe), [math.cos(v) for v in probe]
+    )
+
+
+def make(compiled: bool, seed: int = 0, num_areas: int = 1, **params: float) -> Ball3D:
+    env = Ball3D(np.random.default_rng(seed), num_areas, Parameters(dict(params)))
+    if not compiled:
+        env.kernel = None
+    return env
+
+
+def random_policy(obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Beyond the action range, with some NaN (no turn) too."""
+    actions = rng.uniform(-1.5, 1.5, (len(obs), 2)).astype(np.float32)
+    actions[rng.random(actions.shape) < 0.02] = np.nan
+    return actions
+
+
+def balancing_policy(obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Tilt each platform toward the slope that brings its ball back to the centre.
+    Observations: rotation z, x (quaternion components: half the signed tilt), position
+    x, y, z, velocity x, y, z."""
+    del rng
+    gain, to_centre, damping = 5.0, 0.05, 0.4
+    about_z = gain * (-2 * obs[:, 0] + to_centre * obs[:, 2] + damping * obs[:, 5])
+    about_x = gain * (-2 * obs[:, 1] - to_centre * obs[:, 4] - damping * obs[:, 7])
+    return np.stack([about_z, about_x], axis=1).astype(np.float32)
+
+
+class Played(list[AgentInfos]):
+    """The messages of a run, and the float64 state after each (observations are float32,
+    so they would hide a difference in the last bits)."""
+
+    states: list[np.ndarray]
+
+
+def play(env: Ball3D, decisions: int, policy: Policy, seed: int = 1) -> Played:
+    rng = np.random.default_rng(seed)
+    out = Played([env.reset()[BALL]])
+    out.states = [env.state.copy()]
+    for _ in range(decisions):
+        rows = ~out[-1].done
+        actions = policy(out[-1].obs[0][rows], rng)
+        out.append(env.step({BALL: Actions(actions, np.zeros((len(actions), 0), np.int32))})[BALL])
+        out.states.append(env.state.copy())
+    return out
+
+
+def assert_same(first: Played, second: Played, exact: bool) -> None:
+    assert len(first) == len(second)
+    if exact:
+        np.testing.assert_array_equal(np.stack(first.states), np.stack(second.states))
+    for a, b in zip(first, second, strict=True):
+        for field in ("agent_id", "done", "max_step_reached"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        if exact:
+            np.testing.assert_array_equal(a.obs[0], b.obs[0])
+            np.testing.assert_array_equal(a.reward, b.reward)
+        else:
+            np.testing.assert_allclose(a.obs[0], b.obs[0], rtol=0, atol=1e-5)
+            np.testing.assert_allclose(a.reward, b.reward, rtol=0, atol=1e-6)
+
+
+def test_the_compiled_physics_is_built_where_a_c_compiler_is() -> None:
+    """setup.py's extension is optional, so a broken build would fail silently."""
+    headers = Path(sysconfig.get_paths()["include"], "Python.h")
+    if not (shutil.which("cc") or shutil.which("gcc")) or not headers.exists():
+        pytest.skip("no C compiler or no Python headers here: the numpy physics runs")
+    assert kernel is not None, "unitysim.envs._ball3d did not build: run scripts/setup-venv.sh"
+
+
+def test_the_switch_turns_the_compiled_physics_off(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("UNITYSIM_PHYSICS", "numpy")
+    assert ball3d.compiled_physics() is None
+    assert Ball3D(np.random.default_rng(0), 1, Parameters()).kernel is None
+
+
+@needs_kernel
+@pytest.mark.parametrize(
+    ("num_areas", "params"),
+    [(1, {}), (2, {"gravity": 20.0, "mass": 3.0, "scale": 1.5}), (1, {"mass": 0.2})],
+)
+def test_compiled_and_numpy_physics_give_the_same_random_play(
+    num_areas: int, params: dict[str, float]
+) -> None:
+    """Falls, restarts, actions beyond the range and NaN actions, several parameters."""
+    exact = libm_agrees_with_numpy()
+    decisions = 600 if exact else 20  # apart by an ulp, chaotic trajectories part later
+    first = play(make(True, 3, num_areas, **params), decisions, random_policy)
+    second = play(make(False, 3, num_areas, **params), decisions, random_policy)
+    assert_same(first, second, exact)
+    falls = sum(int((o.done & ~o.max_step_reached).sum()) for o in first)
+    assert falls > (10 * num_areas if exact else 0)  # the terminal path was taken
+
+
+@pytest.mark.parametrize("compiled", [True, False] if kernel else [False])
+def test_a_balanced_ball_stays_on_until_max_step(compiled: bool) -> None:
+    """MaxStep 5000 at a decision every 5 steps: 1000 decisions of +0.1, then every agent
+    is interrupted (done, max_step_reached) in the same message as its next decision."""
+    out = play(make(compiled), ball3d.MAX_STEP // ball3d.DECISION_PERIOD, balancing_policy)
+    for infos in out[:-1]:
+        assert not infos.done.any()
+    last = out[-1]
+    terminal = last.done
+    assert terminal.sum() == 12 and last.max_step_reached[terminal].all()
+    assert len(last) == 24  # the terminal rows and the first decisions of new episodes
+    np.testing.assert_array_equal(last.agent_id[terminal], last.agent_id[~terminal])
+    returns = sum(infos.reward[:12] for infos in out[1:])
+    np.testing.assert_allclose(returns, 100.0, atol=1e-3)
+
+
+@needs_kernel
+def test_compiled_and_numpy_physics_agree_at_max_step() -> None:
+    exact = libm_agrees_with_numpy()
+    decisions = ball3d.MAX_STEP // ball3d.DECISION_PERIOD
+    assert_same(
+        play(make(True, 5), decisions, balancing_policy),
+        play(make(False, 5), decisions, balancing_policy),
+        exact,
+    )
+
+
+@needs_kernel
+def test_the_kernel_names_a_wrong_buffer() -> None:
+    env = make(True)
+    args = [env.state, env.turn, env.reach, env.reward, env.fell, 0.5, 0.2, 0.1, 0.02]
+    constants = [ball3d.DT, ball3d.MAX_SIGMA, ball3d.HALF_WIDTH, ball3d.RESTING_TOLERANCE]
+    assert kernel.physics_step(*args, *constants) == 0  # the balls start 4 units up
+    for index, bad, name in [
+        (0, env.state.astype(np.float32), "state"),
+        (1, env.turn[:, :6], "turn"),
+        (2, env.reach[:-1], "reach"),
+        (4, env.fell.astype(np.int8), "fell"),
+    ]:
+        wrong = list(args)
+        wrong[index] = bad
+        with pytest.raises(ValueError, match=name):
+            kernel.physics_step(*wrong, *constants)
+    with pytest.raises(TypeError, match="13 arguments"):
+        kernel.physics_step(*args)
+    with pytest.raises(ValueError, match="obs"):
+        kernel.observe(env.state, np.empty((12, 8), dtype=np.float64))
+
+
+@needs_kernel
+@pytest.mark.integration
+def test_the_player_takes_the_switch_and_plays_the_same(open_env, monkeypatch, tmp_path):
+    """UNITYSIM_PHYSICS=numpy reaches a player started by UnityEnvironment; the same seed
+    and actions give the same observations with either physics."""
+    with open_env("3DBall", seed=5) as env:
+        compiled = rollout_3dball(env, 60)
+    assert "3DBall physics: C" in (tmp_path / "Player-0.log").read_text()
+    monkeypatch.setenv("UNITYSIM_PHYSICS", "numpy")
+    with open_env("3DBall", seed=5) as env:
+        numpy = rollout_3dball(env, 60)
+    assert "3DBall physics: numpy" in (tmp_path / "Player-0.log").read_text()
+    assert len(compiled) == len(numpy)
+    for a, b in zip(compiled, numpy, strict=True):
+        if libm_agrees_with_numpy():
+            np.testing.assert_array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
