@@ -12,12 +12,15 @@ Both gRPC clients of the player are measured, interleaved (h2, grpcio, h2, grpci
 ``--clients`` picks, ``--repeats`` sets how often), and each variant's best run is reported:
 other load only ever slows a run down. ``--reference-encoder`` also runs the stand-in with
 its reference (protobuf-object) encoder (``UNITYSIM_REFERENCE_ENCODER=1``), so that both
-are measured on the same machine state and a ratio can be given. If GridWorld exists
+are measured on the same machine state and a ratio can be given; ``--physics C,numpy``
+likewise runs 3DBall's C physics and its numpy twin (``UNITYSIM_PHYSICS=numpy``) side by
+side. If GridWorld exists
 (camera PNGs on every step), it is launched too for a shorter run, and its per-message step
 and encoding costs are measured in-process.
 
     .venv/bin/python benchmarks/bench_unitysim.py [--seconds 20] [--reference-encoder]
-        [--clients h2,grpcio] [--repeats 2] [--minutes 10] [--json out.json]
+        [--clients h2,grpcio] [--physics C,numpy] [--repeats 2] [--minutes 10]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ compat.install()
 from machine import machine  # noqa: E402  (benchmarks/machine.py)
 from mlagents_envs.environment import UnityEnvironment  # noqa: E402
 
+from unitysim.envs.ball3d import compiled_physics  # noqa: E402
 from unitysim.launcher import build  # noqa: E402
 
 MB = 1024.0 * 1024.0
@@ -67,20 +71,25 @@ def run_loop(
     warmup: float,
     reference: bool,
     client: str = "h2",
+    physics: str = "C",
 ) -> dict[str, Any]:
     """One launch: warm up, then a timed random-action loop; the stand-in's costs around it."""
-    if reference:
-        os.environ["UNITYSIM_REFERENCE_ENCODER"] = "1"
-    else:
-        os.environ.pop("UNITYSIM_REFERENCE_ENCODER", None)
-    env = UnityEnvironment(
-        file_name=str(directory / env_name),
-        base_port=free_port(),
-        no_graphics=True,
-        timeout_wait=10,
-        additional_args=["--grpc-client", client],
-    )
-    os.environ.pop("UNITYSIM_REFERENCE_ENCODER", None)
+    variables = {"UNITYSIM_REFERENCE_ENCODER": "1" if reference else None}
+    variables["UNITYSIM_PHYSICS"] = "numpy" if physics == "numpy" else None
+    os.environ.update({k: v for k, v in variables.items() if v})  # the player inherits them
+    if physics != "numpy" and compiled_physics() is None:
+        physics = "numpy"  # not built here: say so in the results
+    try:
+        env = UnityEnvironment(
+            file_name=str(directory / env_name),
+            base_port=free_port(),
+            no_graphics=True,
+            timeout_wait=10,
+            additional_args=["--grpc-client", client],
+        )
+    finally:
+        for key in variables:
+            os.environ.pop(key, None)
     try:
         sim = psutil.Process(env._process.pid)  # the launcher execs: this is the player
         trainer = psutil.Process()
@@ -130,6 +139,7 @@ def run_loop(
         "env": env_name,
         "client": client,
         "encoder": "reference" if reference else "fast",
+        "physics": physics if env_name == "3DBall" else "-",
         "seconds": round(elapsed, 2),
         "exchanges": exchanges,
         "agent_steps_per_s": round(decisions / elapsed, 1),
@@ -204,20 +214,45 @@ def gridworld_png_cost(seconds: float = 2.0) -> dict[str, Any]:
 
 def table(rows: list[dict[str, Any]]) -> str:
     head = (
-        "| env | client | encoder | agent-steps/s | exchanges/s | round trip ms "
+        "| env | client | encoder | physics | agent-steps/s | exchanges/s | round trip ms "
         "| stand-in CPU ms/exch | share | trainer CPU ms/exch "
         "| RSS start MB | RSS end MB | RSS max MB |"
     )
     lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
     for r in rows:
         lines.append(
-            f"| {r['env']} | {r['client']} | {r['encoder']} | {r['agent_steps_per_s']:,.0f} "
+            f"| {r['env']} | {r['client']} | {r['encoder']} | {r['physics']} "
+            f"| {r['agent_steps_per_s']:,.0f} "
             f"| {r['exchanges_per_s']:,.0f} | {r['round_trip_ms']:.3f} "
             f"| {r['sim_cpu_ms_per_exchange']:.3f} | {100 * r['sim_share_of_round_trip']:.0f}% "
             f"| {r['trainer_cpu_ms_per_exchange']:.3f} | {r['sim_rss_mb_start']:.1f} "
             f"| {r['sim_rss_mb_end']:.1f} | {r['sim_rss_mb_max']:.1f} |"
         )
     return "\n".join(lines)
+
+
+def ratios(rows: list[dict[str, Any]], axis: str, a: str, b: str) -> dict[str, dict]:
+    """Side-by-side ratios a / b of rows that differ only in ``axis``."""
+    keys = ("env", "client", "encoder", "physics")
+    others = [k for k in keys if k != axis]
+    found = {}
+    for row in rows:
+        match = [
+            r
+            for r in rows
+            if r[axis] == b and row[axis] == a and all(r[k] == row[k] for k in others)
+        ]
+        if match:
+            label = " ".join(str(row[k]) for k in others)
+            found[label] = {
+                key: round(row[key] / match[0][key], 3)
+                for key in (
+                    "agent_steps_per_s",
+                    "sim_cpu_ms_per_exchange",
+                    "sim_share_of_round_trip",
+                )
+            }
+    return found
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -234,6 +269,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--clients", default="h2,grpcio", help="player gRPC clients to compare (comma-separated)"
     )
+    parser.add_argument(
+        "--physics", default="C", help="3DBall physics to compare (comma-separated: C,numpy)"
+    )
     parser.add_argument("--repeats", type=int, default=2, help="interleaved runs per variant")
     parser.add_argument("--no-gridworld", action="store_true", help="skip the PNG cost")
     parser.add_argument("--json", type=Path, help="also write the results here")
@@ -249,6 +287,9 @@ def main(argv: list[str] | None = None) -> int:
     envs = [args.env] + ([] if grid_missing or args.env == "GridWorld" else ["GridWorld"])
     clients = [c.strip() for c in args.clients.split(",") if c.strip()]
     encoders = [False, True] if args.reference_encoder else [False]
+    physics = [p.strip() for p in args.physics.split(",") if p.strip()]
+    if not set(physics) <= {"C", "numpy"}:
+        parser.error(f"--physics: {args.physics!r}: name C and/or numpy")
     runs = []
     with tempfile.TemporaryDirectory(prefix="bench-unitysim-") as tmp:
         directory = Path(tmp)
@@ -258,12 +299,15 @@ def main(argv: list[str] | None = None) -> int:
             for _ in range(max(1, args.repeats)):
                 for client in clients:
                     for reference in encoders:
-                        run = run_loop(directory, env_name, length, args.warmup, reference, client)
-                        runs.append(run)
-                        print(table([run]).splitlines()[-1], flush=True)
-    best: dict[tuple[str, str, str], dict[str, Any]] = {}
+                        for kind in physics if env_name == "3DBall" else physics[:1]:
+                            run = run_loop(
+                                directory, env_name, length, args.warmup, reference, client, kind
+                            )
+                            runs.append(run)
+                            print(table([run]).splitlines()[-1], flush=True)
+    best: dict[tuple[str, str, str, str], dict[str, Any]] = {}
     for run in runs:  # each variant's fastest run: other load only ever slows a run down
-        key = (run["env"], run["client"], run["encoder"])
+        key = (run["env"], run["client"], run["encoder"], run["physics"])
         if key not in best or run["agent_steps_per_s"] > best[key]["agent_steps_per_s"]:
             best[key] = run
     rows = list(best.values())
@@ -271,20 +315,12 @@ def main(argv: list[str] | None = None) -> int:
     print(table(rows))
     result: dict[str, Any] = {"machine": info, "best": rows, "runs": runs}
     fast = rows[0]
-    if args.reference_encoder:
-        result["ratio_fast_over_reference"] = {}
-        for fast_row, ref_row in zip(rows[::2], rows[1::2], strict=True):
-            ratio = {
-                "agent_steps_per_s": round(
-                    fast_row["agent_steps_per_s"] / ref_row["agent_steps_per_s"], 3
-                ),
-                "sim_cpu_ms_per_exchange": round(
-                    fast_row["sim_cpu_ms_per_exchange"] / ref_row["sim_cpu_ms_per_exchange"], 3
-                ),
-            }
-            label = f"{fast_row['env']} {fast_row['client']}"
-            result["ratio_fast_over_reference"][label] = ratio
-            print(f"\n{label}: fast / reference encoder: {ratio}")
+    for axis, a, b in (("encoder", "fast", "reference"), ("physics", "C", "numpy")):
+        found = ratios(rows, axis, a, b)
+        if found:
+            result[f"ratio_{a}_over_{b}"] = found
+            for label, ratio in found.items():
+                print(f"\n{label}: {a} / {b} {axis}: {ratio}")
     growth = fast["sim_rss_mb_end"] - fast["sim_rss_mb_start"]
     verdict = {
         "share_ok": fast["sim_share_of_round_trip"] <= SHARE_GOAL,

@@ -171,6 +171,20 @@ def test_the_kernel_names_a_wrong_buffer() -> None:
         kernel.physics_step(*args)
     with pytest.raises(ValueError, match="obs"):
         kernel.observe(env.state, np.empty((12, 8), dtype=np.float64))
+    with pytest.raises(ValueError, match="actions"):
+        kernel.act(np.zeros((12, 3), np.float32), env.turn, *ball3d.TURN_PER_AXIS)
+
+
+@needs_kernel
+def test_the_compiled_act_reads_strided_actions() -> None:
+    """Actions may arrive as a view (the protobuf reader's rows)."""
+    wide = np.random.default_rng(0).uniform(-2, 2, (12, 4)).astype(np.float32)
+    wide[3, 2] = np.nan
+    compiled, reference = make(True), make(False)
+    compiled._act(wide[:, 1:3])
+    reference._act(np.ascontiguousarray(wide[:, 1:3]))
+    np.testing.assert_array_equal(compiled.turn, reference.turn)
+    assert compiled.turn[1, 3] == 0.0 and np.abs(compiled.turn).max() == ball3d.TURN
 
 
 @needs_kernel

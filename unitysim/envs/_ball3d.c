@@ -1,5 +1,5 @@
-/* 3DBall's physics step and observation in C: the optional fast path of
- * unitysim/envs/ball3d.py, whose Ball3D._move and Ball3D._observe are the numpy twins and
+/* 3DBall's actions, physics step and observation in C: the optional fast path of
+ * unitysim/envs/ball3d.py, whose Ball3D._act, _move and _observe are the numpy twins and
  * explain every row and constant. Both must stay the same equations in the same order:
  * tests/unitysim/test_ball3d.py compares them to the last bit.
  *
@@ -128,6 +128,43 @@ done:
     return result;
 }
 
+/* act(actions, turn, turn_z, turn_x): turn (2, n) float64 <- Ball3D._act of the
+ * (n, 2) float32 actions (any strides): clamped to [-1, 1], NaN as no turn, times the
+ * radians per step of each axis. */
+static PyObject *act(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "act takes 4 arguments");
+        return NULL;
+    }
+    const double rate[2] = {PyFloat_AsDouble(args[2]), PyFloat_AsDouble(args[3])};
+    if (PyErr_Occurred()) return NULL;
+    Py_buffer actions, turn;
+    if (PyObject_GetBuffer(args[0], &actions, PyBUF_RECORDS_RO) < 0) return NULL;
+    const Py_ssize_t n = actions.ndim == 2 ? actions.shape[0] : -1;
+    if (n < 0 || actions.shape[1] != 2 || strcmp(actions.format, "f") != 0) {
+        PyErr_SetString(PyExc_ValueError, "actions: need an (n, 2) float32 array");
+        PyBuffer_Release(&actions);
+        return NULL;
+    }
+    if (take(args[1], &turn, "d", 2 * n, "turn") < 0) {
+        PyBuffer_Release(&actions);
+        return NULL;
+    }
+    const char *row = actions.buf;
+    double *out = turn.buf;
+    for (Py_ssize_t i = 0; i < n; i++, row += actions.strides[0]) {
+        for (int k = 0; k < 2; k++) {
+            float a = *(const float *)(row + k * actions.strides[1]);
+            a = isnan(a) ? 0.0f : a > 1.0f ? 1.0f : a < -1.0f ? -1.0f : a;
+            out[k * n + i] = (double)a * rate[k];
+        }
+    }
+    PyBuffer_Release(&turn);
+    PyBuffer_Release(&actions);
+    Py_RETURN_NONE;
+}
+
 /* observe(state, obs): obs (n, 8) float32 <- the observation of Ball3D._observe. */
 static PyObject *observe(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
@@ -162,6 +199,8 @@ static PyObject *observe(PyObject *self, PyObject *const *args, Py_ssize_t nargs
 }
 
 static PyMethodDef methods[] = {
+    {"act", (PyCFunction)(void (*)(void))act, METH_FASTCALL,
+     "Each agent's turn per physics step from its (clamped) actions."},
     {"observe", (PyCFunction)(void (*)(void))observe, METH_FASTCALL,
      "The 3DBall observation of every agent, written into an (n, 8) float32 array."},
     {"physics_step", (PyCFunction)(void (*)(void))physics_step, METH_FASTCALL,

@@ -61,6 +61,7 @@ X_Z, Y, V_X_Z, V_Y = slice(2, 4), 4, slice(5, 7), 7
 OBS_ROWS = np.array([0, 1, 2, 4, 3, 5, 7, 6])
 # From signed tilts (and per-axis turns) back to Unity's (about z, about x) order and signs.
 AXIS_SIGN = np.array([[-1.0], [1.0]])
+TURN_PER_AXIS = tuple(float(rate) for rate in TURN * AXIS_SIGN[:, 0])  # the C act's rates
 
 
 def compiled_physics() -> ModuleType | None:
@@ -118,7 +119,8 @@ class Ball3D(SimEnv):
 
     def _begin_episodes(self, which: np.ndarray) -> None:
         """``OnEpisodeBegin``: random small tilt, ball dropped from 4 units above."""
-        k = int(which.sum())
+        agents = np.flatnonzero(which)  # indices: cheaper than the mask in what follows
+        k = len(agents)
         if k == 0:
             return
         self.gravity = self.params.get("gravity", 9.81)
@@ -131,12 +133,12 @@ class Ball3D(SimEnv):
         fresh[SIGMA] = np.radians(tilt.T) * AXIS_SIGN
         fresh[X_Z] = x, z
         fresh[Y] = 4.0
-        self.state[:, which] = fresh
-        np.maximum(np.abs(self.xz[0]), np.abs(self.xz[1]), out=self.reach)
-        self.turn[:, which] = 0.0
-        self.direction[:, which] = 0.0
-        self.reward[which] = 0.0
-        self.start[which] = self.academy_steps
+        self.state[:, agents] = fresh
+        self.reach[agents] = np.maximum(np.abs(x), np.abs(z))
+        self.turn[:, agents] = 0.0
+        self.direction[:, agents] = 0.0
+        self.reward[agents] = 0.0
+        self.start[agents] = self.academy_steps
         self.next_interrupt = int(self.start.min()) + MAX_STEP
 
     def _observe(self) -> np.ndarray:
@@ -155,6 +157,9 @@ class Ball3D(SimEnv):
 
     def _act(self, continuous: np.ndarray) -> None:
         """Decisions are always for every agent, in id order; NaN means no turn."""
+        if self.kernel is not None:  # the C step needs no directions: it takes the signs
+            self.kernel.act(continuous, self.turn, *TURN_PER_AXIS)
+            return
         action = np.minimum(continuous, 1.0)  # (np.clip's Python wrapper costs more)
         np.maximum(action, -1.0, out=action)
         if np.count_nonzero(np.isnan(action)):
