@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import sys
 import sysconfig
 from collections.abc import Callable
 from pathlib import Path
@@ -205,3 +206,23 @@ def test_the_player_takes_the_switch_and_plays_the_same(open_env, monkeypatch, t
             np.testing.assert_array_equal(a, b)
         else:
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
+
+
+@needs_kernel
+def test_the_kernel_releases_every_buffer_it_takes() -> None:
+    """Each call takes views of its arrays; a view not given back would keep the array
+    alive forever (a leak in a player that runs for hours)."""
+    env = make(True)
+    arrays = [env.state, env.turn, env.reach, env.reward, env.fell]
+    actions, obs = np.zeros((12, 2), np.float32), np.empty((12, 8), np.float32)
+    before = [sys.getrefcount(a) for a in [*arrays, actions, obs]]
+    constants = [0.5, 0.2, 0.1, 0.02, ball3d.DT, 0.5, 2.5, 1e-6]
+    for _ in range(100):
+        kernel.act(actions, env.turn, *ball3d.TURN_PER_AXIS)
+        kernel.physics_step(*arrays, *constants)
+        kernel.observe(env.state, obs)
+        with pytest.raises(ValueError):  # a failure after some views were taken
+            kernel.physics_step(*arrays[:4], env.fell.astype(np.int8), *constants)
+        with pytest.raises(ValueError):
+            kernel.observe(env.state, obs.astype(np.float64))
+    assert [sys.getrefcount(a) for a in [*arrays, actions, obs]] == before
