@@ -59,14 +59,16 @@ COPY config/ config/
 # only, no test tools.
 ARG PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu
 # gcc and libc6-dev build unitysim's C 3DBall physics (setup.py) and leave in the same
-# layer; `doctor` then shows "3DBall physics C". The profile.d line is literal on purpose:
-# login shells (KubeRay's bash -lc) expand it.
+# layer; the import after the purge fails the build if the extension is missing (setup.py
+# would only warn). The profile.d line is literal on purpose: login shells (KubeRay's
+# bash -lc) expand it.
 # hadolint ignore=SC2016,DL3008
 RUN apt-get update \
     && apt-get install -y --no-install-recommends gcc libc6-dev \
     && PYTHON=python3.11 VENV=/opt/venv EXTRAS= PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
     && apt-get purge -y --auto-remove gcc libc6-dev \
     && rm -rf /var/lib/apt/lists/* \
+    && /opt/venv/bin/python -c "import unitysim.envs._ball3d" \
     && /opt/venv/bin/unity-rollout doctor \
     && printf 'export VIRTUAL_ENV=/opt/venv\nexport PATH=/opt/venv/bin:$PATH\n' \
         > /etc/profile.d/unity-rollout.sh

@@ -76,7 +76,10 @@ def run_loop(
     """One launch: warm up, then a timed random-action loop; the stand-in's costs around it."""
     variables = {"UNITYSIM_REFERENCE_ENCODER": "1" if reference else None}
     variables["UNITYSIM_PHYSICS"] = "numpy" if physics == "numpy" else None
-    os.environ.update({k: v for k, v in variables.items() if v})  # the player inherits them
+    for key, value in variables.items():  # the player inherits them; none from our caller
+        os.environ.pop(key, None)
+        if value:
+            os.environ[key] = value
     if physics != "numpy" and compiled_physics() is None:
         physics = "numpy"  # not built here: say so in the results
     try:

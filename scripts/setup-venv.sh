@@ -12,7 +12,9 @@ PYTHON=${PYTHON:-python3.11}
 VENV=${VENV:-.venv}
 EXTRAS=${EXTRAS-dev}  # EXTRAS= (empty): runtime only
 inputs=(pyproject.toml setup.py constraints.txt scripts/setup-venv.sh unitysim/envs/_ball3d.c)
-want="$(cat "${inputs[@]}" | sha256sum | cut -c1-16)-$EXTRAS"
+# A C compiler appearing (or going) changes what setup.py builds: reinstall then too.
+compiler=$(command -v "${CC:-cc}" >/dev/null && echo cc || echo no-cc)
+want="$(cat "${inputs[@]}" | sha256sum | cut -c1-16)-$EXTRAS-$compiler"
 
 if [[ -f "$VENV/.installed" && "$(cat "$VENV/.installed")" == "$want" ]]; then
     exit 0

@@ -93,12 +93,18 @@ def assert_same(first: Played, second: Played, exact: bool) -> None:
             np.testing.assert_allclose(a.reward, b.reward, rtol=0, atol=1e-6)
 
 
-def test_the_compiled_physics_is_built_where_a_c_compiler_is() -> None:
+def test_the_compiled_physics_is_built_where_a_c_compiler_is(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """setup.py's extension is optional, so a broken build would fail silently."""
     headers = Path(sysconfig.get_paths()["include"], "Python.h")
-    if not (shutil.which("cc") or shutil.which("gcc")) or not headers.exists():
-        pytest.skip("no C compiler or no Python headers here: the numpy physics runs")
-    assert kernel is not None, "unitysim.envs._ball3d did not build: run scripts/setup-venv.sh"
+    if not shutil.which("cc") or not headers.exists():
+        pytest.skip("no C compiler (cc) or no Python headers here: the numpy physics runs")
+    monkeypatch.delenv("UNITYSIM_PHYSICS", raising=False)
+    assert ball3d.compiled_physics() is not None, (
+        "unitysim.envs._ball3d did not build: delete .venv/.installed, run "
+        "scripts/setup-venv.sh and read setup.py's build output"
+    )
 
 
 def test_the_switch_turns_the_compiled_physics_off(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -160,8 +166,12 @@ def test_the_kernel_names_a_wrong_buffer() -> None:
     assert kernel.physics_step(*args, *constants) == 0  # the balls start 4 units up
     for index, bad, name in [
         (0, env.state.astype(np.float32), "state"),
+        (0, env.state.T.copy(), "state"),  # (n, 8): the right size, the wrong layout
+        (0, env.state[:, ::2], "state"),
         (1, env.turn[:, :6], "turn"),
+        (1, env.turn.T.copy(), "turn"),
         (2, env.reach[:-1], "reach"),
+        (3, env.reward.astype(np.float64), "reward"),
         (4, env.fell.astype(np.int8), "fell"),
     ]:
         wrong = list(args)
@@ -172,8 +182,32 @@ def test_the_kernel_names_a_wrong_buffer() -> None:
         kernel.physics_step(*args)
     with pytest.raises(ValueError, match="obs"):
         kernel.observe(env.state, np.empty((12, 8), dtype=np.float64))
+    with pytest.raises(ValueError, match="obs"):
+        kernel.observe(env.state, np.empty((8, 12), dtype=np.float32))
     with pytest.raises(ValueError, match="actions"):
         kernel.act(np.zeros((12, 3), np.float32), env.turn, *ball3d.TURN_PER_AXIS)
+    with pytest.raises(ValueError, match="turn"):
+        kernel.act(np.zeros((11, 2), np.float32), env.turn, *ball3d.TURN_PER_AXIS)
+    with pytest.raises(TypeError):
+        kernel.act(np.zeros((12, 2), np.float32), env.turn, "fast", 1.0)
+
+
+@pytest.mark.parametrize("compiled", [True, False] if kernel else [False])
+def test_a_fall_on_the_max_step_is_a_fall_not_an_interruption(compiled: bool) -> None:
+    """The step where every episode reaches MaxStep is also the step where one ball falls:
+    that agent ends with -1 and without max_step_reached; the others are interrupted."""
+    env = make(compiled)
+    env.reset()
+    env.academy_steps = 2 * ball3d.MAX_STEP - 1  # every episode began at MAX_STEP - 1 ...
+    env.start[:] = ball3d.MAX_STEP - 1
+    env.next_interrupt = env.academy_steps  # ... so the next physics step is the last
+    env.xz[0, 0], env.vel[0, 0] = 2.99, 5.0  # and agent 0's ball leaves the platform in it
+    no_turn = Actions(np.zeros((12, 2), np.float32), np.zeros((12, 0), np.int32))
+    out = env.step({BALL: no_turn})[BALL]
+    assert len(out) == 24 and out.done[:12].all() and not out.done[12:].any()
+    assert out.agent_id[0] == 0 and not out.max_step_reached[0] and out.reward[0] == -1.0
+    assert out.max_step_reached[1:12].all()
+    np.testing.assert_array_equal(out.reward[1:12], np.float32(0.1))
 
 
 @needs_kernel
@@ -225,4 +259,6 @@ def test_the_kernel_releases_every_buffer_it_takes() -> None:
             kernel.physics_step(*arrays[:4], env.fell.astype(np.int8), *constants)
         with pytest.raises(ValueError):
             kernel.observe(env.state, obs.astype(np.float64))
+        with pytest.raises(ValueError):
+            kernel.act(actions, env.turn.T.copy(), *ball3d.TURN_PER_AXIS)
     assert [sys.getrefcount(a) for a in [*arrays, actions, obs]] == before

@@ -15,33 +15,39 @@
 #include <stdbool.h>
 #include <string.h>
 
-/* Takes a writable C-contiguous buffer of `count` items of `format` (one struct char);
- * -1 with an error set if it is not one. */
-static int take(PyObject *obj, Py_buffer *view, const char *format, Py_ssize_t count,
-                const char *what) {
+/* Takes a writable C-contiguous buffer of `format` (one struct char) shaped (rows, cols),
+ * or (rows,) where cols is 0; -1 with an error set naming `what` if it is not one. */
+static int take(PyObject *obj, Py_buffer *view, const char *format, Py_ssize_t rows,
+                Py_ssize_t cols, const char *what) {
     if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
         PyErr_Format(PyExc_ValueError, "%s: need a writable C-contiguous array", what);
         return -1;
     }
     const char *got = view->format ? view->format : "B";
-    if (strcmp(got, format) != 0 || view->len != count * view->itemsize) {
-        PyErr_Format(PyExc_ValueError, "%s: need %zd items of format '%s', got %zd bytes of "
-                     "format '%s'", what, count, format, view->len, got);
+    const int ndim = cols ? 2 : 1;
+    if (strcmp(got, format) != 0 || view->ndim != ndim || view->shape[0] != rows ||
+        (cols && view->shape[1] != cols)) {
+        if (cols)
+            PyErr_Format(PyExc_ValueError, "%s: need a (%zd, %zd) array of format '%s'", what,
+                         rows, cols, format);
+        else
+            PyErr_Format(PyExc_ValueError, "%s: need a (%zd,) array of format '%s'", what, rows,
+                         format);
         PyBuffer_Release(view);
         return -1;
     }
     return 0;
 }
 
-/* The number of agents, n, of an (8, n) float64 state (which `take` then checks). */
+/* The number of agents, n, of an (8, n) state (which `take` then checks in full). */
 static Py_ssize_t agents_in(PyObject *state) {
     Py_buffer view;
-    if (PyObject_GetBuffer(state, &view, PyBUF_C_CONTIGUOUS) < 0) {
-        PyErr_SetString(PyExc_ValueError, "state: need a writable C-contiguous array");
-        return -1;
+    Py_ssize_t n = -1;
+    if (PyObject_GetBuffer(state, &view, PyBUF_ND) == 0) {
+        n = view.ndim == 2 ? view.shape[1] : -1;
+        PyBuffer_Release(&view);
     }
-    const Py_ssize_t n = view.len / (8 * (Py_ssize_t)sizeof(double));
-    PyBuffer_Release(&view);
+    if (n < 0) PyErr_SetString(PyExc_ValueError, "state: need an (8, n) float64 array");
     return n;
 }
 
@@ -75,9 +81,9 @@ static PyObject *physics_step(PyObject *self, PyObject *const *args, Py_ssize_t 
     PyObject *result = NULL;
     static const char *formats[5] = {"d", "d", "d", "f", "?"};
     static const char *names[5] = {"state", "turn", "reach", "reward", "fell"};
-    const Py_ssize_t counts[5] = {8 * n, 2 * n, n, n, n};
+    const Py_ssize_t rows[5] = {8, 2, n, n, n}, cols[5] = {n, n, 0, 0, 0};
     for (; held < 5; held++)
-        if (take(args[held], &views[held], formats[held], counts[held], names[held]) < 0)
+        if (take(args[held], &views[held], formats[held], rows[held], cols[held], names[held]))
             goto done;
 
     double *s = views[0].buf;
@@ -137,8 +143,11 @@ static PyObject *act(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
         PyErr_SetString(PyExc_TypeError, "act takes 4 arguments");
         return NULL;
     }
-    const double rate[2] = {PyFloat_AsDouble(args[2]), PyFloat_AsDouble(args[3])};
-    if (PyErr_Occurred()) return NULL;
+    double rate[2];
+    for (int k = 0; k < 2; k++) {
+        rate[k] = PyFloat_AsDouble(args[2 + k]);
+        if (rate[k] == -1.0 && PyErr_Occurred()) return NULL;
+    }
     Py_buffer actions, turn;
     if (PyObject_GetBuffer(args[0], &actions, PyBUF_RECORDS_RO) < 0) return NULL;
     const Py_ssize_t n = actions.ndim == 2 ? actions.shape[0] : -1;
@@ -147,7 +156,7 @@ static PyObject *act(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
         PyBuffer_Release(&actions);
         return NULL;
     }
-    if (take(args[1], &turn, "d", 2 * n, "turn") < 0) {
+    if (take(args[1], &turn, "d", 2, n, "turn") < 0) {
         PyBuffer_Release(&actions);
         return NULL;
     }
@@ -175,8 +184,8 @@ static PyObject *observe(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     const Py_ssize_t n = agents_in(args[0]);
     if (n < 0) return NULL;
     Py_buffer state, obs;
-    if (take(args[0], &state, "d", 8 * n, "state") < 0) return NULL;
-    if (take(args[1], &obs, "f", 8 * n, "obs") < 0) {
+    if (take(args[0], &state, "d", 8, n, "state") < 0) return NULL;
+    if (take(args[1], &obs, "f", n, 8, "obs") < 0) {
         PyBuffer_Release(&state);
         return NULL;
     }
@@ -184,7 +193,7 @@ static PyObject *observe(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     float *o = obs.buf;
     for (Py_ssize_t i = 0; i < n; i++, o += 8) {
         /* quaternion z and x components of the tilts; position x, y, z; velocity x, y, z */
-        o[0] = (float)-sin(s[i] * 0.5);
+        o[0] = (float)(sin(s[i] * 0.5) * -1.0); /* as numpy: times the axis sign */
         o[1] = (float)sin(s[n + i] * 0.5);
         o[2] = (float)s[2 * n + i];
         o[3] = (float)s[4 * n + i];

@@ -12,9 +12,9 @@ ball is pushed less by the moving platform) and ``scale`` (1; the ball's size).
 
 The stand-in must never be what limits a trainer's throughput, so one physics step is one
 call into C (``_ball3d.c``, built by setup.py where a C compiler is) or, without it, a few
-dozen in-place numpy operations with the same results (``_move``), on a single (8, n)
-float64 state array whose rows are laid out for the maths rather than for the
-observation: the tilts are stored in radians
+dozen in-place numpy operations with the same results (``_move``; to the last bit where
+numpy's sin and cos are libm's), on a single (8, n) float64 state array whose rows are
+laid out for the maths rather than for the observation: the tilts are stored in radians
 and signed so that both horizontal axes obey the same equations (``sigma = [-tilt_z,
 tilt_x]``: the slope then pushes ``x`` by ``sin(sigma[0])`` and ``z`` by ``sin(sigma[1])``,
 and the surface height is ``x * tan(sigma[0]) + z * tan(sigma[1])``). Episode lengths are
