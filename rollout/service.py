@@ -20,7 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import ray
-from ray.exceptions import RayActorError, RayTaskError
+from ray.exceptions import ActorUnavailableError, RayActorError, RayTaskError
 
 from rollout import keys
 from rollout.collector import ActorFactory, CollectorMetrics
@@ -31,8 +31,16 @@ from rollout.worker import RolloutWorker
 log = logging.getLogger(__name__)
 
 
+RETRY_PAUSE_S = 0.5  # between collects sent to a worker that Ray is restarting
+
+
 class RolloutError(RuntimeError):
     """Collection cannot go on (a worker keeps failing); the message names the cause."""
+
+
+def _last_line(error: Exception) -> str:
+    text = str(error).strip()
+    return text.splitlines()[-1] if text else type(error).__name__
 
 
 @dataclass(frozen=True)
@@ -45,6 +53,7 @@ class ServiceConfig:
     learner_in_flight: int = 2
     worker_cpus: float = 1.0
     max_worker_restarts: int = 3
+    restart_wait_s: float = 120.0  # how long a worker may take to come back after a death
     port_range: PortRange | None = None
     registry_dir: str | None = None
 
@@ -107,6 +116,8 @@ class RolloutService:
         self._collects: dict[ray.ObjectRef, int] = {}  # collect ref -> worker index
         self._submits: list[ray.ObjectRef] = []
         self._failures: list[int] = []  # consecutive failed collects per worker
+        self._restarting: dict[int, float] = {}  # worker index -> when it went away
+        self._retry_at: dict[int, float] = {}  # worker index -> when to ask it again
         self._started = 0.0
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -134,6 +145,8 @@ class RolloutService:
         self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
         self._worker_version = [0] * len(self.workers)
         self._failures = [0] * len(self.workers)
+        self._restarting.clear()
+        self._retry_at.clear()
         for index in range(len(self.workers)):
             for _ in range(self.config.collects_per_worker):
                 self._issue(index)
@@ -169,6 +182,15 @@ class RolloutService:
     def step(self, timeout: float = 60.0) -> int:
         """Route one finished collect to the learner; returns the segments routed."""
         self._drain_submits(block=len(self._submits) >= self.config.learner_in_flight)
+        now = time.perf_counter()
+        for index in [i for i, at in self._retry_at.items() if at <= now]:
+            del self._retry_at[index]
+            self._issue(index)
+        if self._retry_at:  # come back in time for the next retry
+            timeout = max(0.0, min(timeout, min(self._retry_at.values()) - now))
+        if not self._collects:
+            time.sleep(timeout)
+            return 0
         ready, _ = ray.wait(list(self._collects), num_returns=1, timeout=timeout)
         if not ready:
             return 0
@@ -179,23 +201,39 @@ class RolloutService:
         except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
             cause = getattr(error, "cause", None) or error
             raise RolloutError(f"worker {index}: {str(cause).strip().splitlines()[-1]}") from None
-        except RayActorError as error:
-            self.metrics.worker_restarts += 1
-            self._failures[index] += 1
-            if self._failures[index] > self.config.max_worker_restarts:
-                cause = str(error).strip().splitlines()[-1] if str(error).strip() else error
+        except ActorUnavailableError as error:  # died, and Ray is bringing it back
+            if index not in self._restarting:
+                self._count_failure(index, error)
+                self._restarting[index] = time.perf_counter()
+            elif time.perf_counter() - self._restarting[index] > self.config.restart_wait_s:
                 raise RolloutError(
-                    f"worker {index} failed {self._failures[index]} times in a row; last: {cause}"
+                    f"worker {index} did not come back within {self.config.restart_wait_s:.0f} s "
+                    f"of its restart; last: {_last_line(error)}"
                 ) from None
-            log.warning("worker %d died (%s); Ray restarts it", index, error)
-            self._worker_version[index] = 0  # a restarted worker needs the weights again
+            self._retry_at[index] = time.perf_counter() + RETRY_PAUSE_S
+            return 0
+        except RayActorError as error:
+            self._count_failure(index, error)
             self._issue(index)
             return 0
         self._failures[index] = 0
+        self._restarting.pop(index, None)
         self._submits.append(self.learner.submit.remote(ref))
         self._observe(segments)
         self._issue(index)
         return len(segments)
+
+    def _count_failure(self, index: int, error: RayActorError) -> None:
+        """A worker died: count it, end the run if it keeps dying, else let Ray restart it."""
+        self.metrics.worker_restarts += 1
+        self._failures[index] += 1
+        if self._failures[index] > self.config.max_worker_restarts:
+            raise RolloutError(
+                f"worker {index} failed {self._failures[index]} times in a row; "
+                f"last: {_last_line(error)}"
+            ) from None
+        log.warning("worker %d died (%s); Ray restarts it", index, error)
+        self._worker_version[index] = 0  # a restarted worker needs the weights again
 
     def _drain_submits(self, block: bool) -> None:
         if not self._submits:

@@ -161,6 +161,32 @@ def test_service_routes_segments_and_weights_and_survives_a_killed_worker(ray_se
     assert metrics.policy_lag_count > 0 and metrics.policy_lag_max >= 0
 
 
+def test_a_killed_worker_is_one_failure_however_long_ray_takes_to_restart_it(ray_session, registry):
+    """While Ray restarts a worker (seconds: a new process imports torch), collects sent to
+    it fail at once as "unavailable"; those retries must not count as more deaths, or a
+    budget of one restart would end the run."""
+    learner = ray_session.remote(CountingLearner).remote()
+    config = ServiceConfig(
+        UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
+        num_workers=1,
+        horizon=16,
+        worker_cpus=0.5,
+        max_worker_restarts=1,
+        port_range=PORTS,
+        registry_dir=registry,
+    )
+    with RolloutService(config, actor_factory, learner) as service:
+        service.run(agent_steps=500)
+        victim = ray_session.get(service.workers[0].identity.remote())
+        os.kill(victim["pid"], signal.SIGKILL)
+        before = service.metrics.segments
+        metrics = service.run(until=lambda m: m.segments >= before + 5, seconds=60)
+        assert metrics.segments >= before + 5, "the restarted worker never delivered"
+        assert metrics.worker_restarts == 1
+        assert ray_session.get(service.workers[0].identity.remote())["pid"] != victim["pid"]
+    ray_session.kill(learner)
+
+
 def test_a_worker_whose_unity_keeps_failing_ends_the_run_with_its_cause(ray_session, registry):
     learner = ray_session.remote(CountingLearner).remote()
     unity = UnityConfig(
