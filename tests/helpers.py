@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import contextlib
+import itertools
+import random
 import socket
 import time
 from collections.abc import Iterator
@@ -10,14 +12,35 @@ from pathlib import Path
 
 import psutil
 
-from rollout.ports import PortAllocator, PortRange
+from rollout.ports import PortAllocator, PortRange, ephemeral_range
+
+# Above the kernel's ephemeral range (32768-60999 by default): no outgoing connection (a
+# player's, Ray's) can take one of these between the check and the test's bind, as it can
+# an OS-chosen port; and outside the allocator's default range (below the ephemeral one).
+# Handed out in turn from a random start, never twice in a session.
+TEST_PORTS = range(ephemeral_range()[1] + 1, 65536)
+_turn = itertools.count(random.randrange(len(TEST_PORTS)))
+
+
+def _bindable(port: int) -> bool:
+    """Free on every address a trainer binds (mlagents binds [::], which covers 0.0.0.0)."""
+    for family, host in ((socket.AF_INET, "0.0.0.0"), (socket.AF_INET6, "::")):
+        try:
+            with socket.socket(family, socket.SOCK_STREAM) as probe:
+                probe.bind((host, port))
+        except OSError:
+            if family == socket.AF_INET or socket.has_ipv6:
+                return False
+    return True
 
 
 def free_port() -> int:
-    """A port nothing listens on right now (for tests that bypass the port allocator)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+    """A port nothing listens on or connects from (for tests that bypass the allocator)."""
+    for _ in range(len(TEST_PORTS)):
+        port = TEST_PORTS[next(_turn) % len(TEST_PORTS)]
+        if _bindable(port):
+            return port
+    raise RuntimeError(f"no free port in {TEST_PORTS}")
 
 
 def wait_gone(pid: int, seconds: float) -> bool:

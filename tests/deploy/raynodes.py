@@ -30,6 +30,8 @@ from pathlib import Path
 
 import psutil
 
+from tests.helpers import free_port
+
 VENV_BIN = Path(sys.executable).parent
 RAY = str(VENV_BIN / "ray")
 CLUSTER_TAG = "UNITY_ROLLOUT_DEPLOY_CLUSTER"
@@ -37,14 +39,8 @@ LOOPBACK = "127.0.0.1"
 
 
 def free_ports(count: int) -> list[int]:
-    """``count`` distinct ports nothing listens on right now (held open together)."""
-    with contextlib.ExitStack() as stack:
-        ports = []
-        for _ in range(count):
-            probe = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
-            probe.bind((LOOPBACK, 0))
-            ports.append(probe.getsockname()[1])
-    return ports
+    """``count`` distinct ports nothing listens on (outside the ephemeral range)."""
+    return [free_port() for _ in range(count)]
 
 
 def _is_free(port: int) -> bool:
