@@ -14,9 +14,8 @@ other load only ever slows a run down. ``--reference-encoder`` also runs the sta
 its reference (protobuf-object) encoder (``UNITYSIM_REFERENCE_ENCODER=1``), so that both
 are measured on the same machine state and a ratio can be given; ``--physics C,numpy``
 likewise runs 3DBall's C physics and its numpy twin (``UNITYSIM_PHYSICS=numpy``) side by
-side. If GridWorld exists
-(camera PNGs on every step), it is launched too for a shorter run, and its per-message step
-and encoding costs are measured in-process.
+side. If GridWorld exists (camera PNGs on every step), it is launched too for a shorter
+run, and its per-message step and encoding costs are measured in-process.
 
     .venv/bin/python benchmarks/bench_unitysim.py [--seconds 20] [--reference-encoder]
         [--clients h2,grpcio] [--physics C,numpy] [--repeats 2] [--minutes 10]
@@ -239,12 +238,8 @@ def ratios(rows: list[dict[str, Any]], axis: str, a: str, b: str) -> dict[str, d
     keys = ("env", "client", "encoder", "physics")
     others = [k for k in keys if k != axis]
     found = {}
-    for row in rows:
-        match = [
-            r
-            for r in rows
-            if r[axis] == b and row[axis] == a and all(r[k] == row[k] for k in others)
-        ]
+    for row in (r for r in rows if r[axis] == a):
+        match = [r for r in rows if r[axis] == b and all(r[k] == row[k] for k in others)]
         if match:
             label = " ".join(str(row[k]) for k in others)
             found[label] = {

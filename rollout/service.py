@@ -200,17 +200,18 @@ class RolloutService:
             segments = ray.get(ref)
         except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
             cause = getattr(error, "cause", None) or error
-            raise RolloutError(f"worker {index}: {str(cause).strip().splitlines()[-1]}") from None
+            raise RolloutError(f"worker {index}: {_last_line(cause)}") from None
         except ActorUnavailableError as error:  # died, and Ray is bringing it back
+            now = time.perf_counter()
             if index not in self._restarting:
                 self._count_failure(index, error)
-                self._restarting[index] = time.perf_counter()
-            elif time.perf_counter() - self._restarting[index] > self.config.restart_wait_s:
+                self._restarting[index] = now
+            elif now - self._restarting[index] > self.config.restart_wait_s:
                 raise RolloutError(
                     f"worker {index} did not come back within {self.config.restart_wait_s:.0f} s "
                     f"of its restart; last: {_last_line(error)}"
                 ) from None
-            self._retry_at[index] = time.perf_counter() + RETRY_PAUSE_S
+            self._retry_at[index] = now + RETRY_PAUSE_S
             return 0
         except RayActorError as error:
             self._count_failure(index, error)

@@ -3,6 +3,7 @@ MaxStep."""
 
 from __future__ import annotations
 
+import functools
 import math
 import shutil
 import sys
@@ -25,6 +26,7 @@ kernel = ball3d.compiled_physics()
 needs_kernel = pytest.mark.skipif(kernel is None, reason="unitysim.envs._ball3d is not built")
 
 
+@functools.cache
 def libm_agrees_with_numpy() -> bool:
     """Both paths take sin and cos from libm where numpy does not use its own SIMD
     versions; only then must their trajectories agree to the last bit."""

@@ -51,6 +51,21 @@ static Py_ssize_t agents_in(PyObject *state) {
     return n;
 }
 
+/* Checks that `name` got `want` arguments and reads those from `first` on as doubles into
+ * `out`; -1 with an error set if not. */
+static int arguments(const char *name, PyObject *const *args, Py_ssize_t nargs,
+                     Py_ssize_t want, Py_ssize_t first, double *out) {
+    if (nargs != want) {
+        PyErr_Format(PyExc_TypeError, "%s takes %zd arguments", name, want);
+        return -1;
+    }
+    for (Py_ssize_t k = first; k < want; k++) {
+        out[k - first] = PyFloat_AsDouble(args[k]);
+        if (out[k - first] == -1.0 && PyErr_Occurred()) return -1;
+    }
+    return 0;
+}
+
 static double maximum(double a, double b) { /* np.maximum: NaN wins */
     if (isnan(a) || isnan(b)) return isnan(a) ? a : b;
     return a > b ? a : b;
@@ -62,15 +77,8 @@ static double maximum(double a, double b) { /* np.maximum: NaN wins */
  * fell: (n,) bool, written. */
 static PyObject *physics_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
-    if (nargs != 13) {
-        PyErr_SetString(PyExc_TypeError, "physics_step takes 13 arguments");
-        return NULL;
-    }
     double c[8];
-    for (int k = 0; k < 8; k++) {
-        c[k] = PyFloat_AsDouble(args[5 + k]);
-        if (c[k] == -1.0 && PyErr_Occurred()) return NULL;
-    }
+    if (arguments("physics_step", args, nargs, 13, 5, c) < 0) return NULL;
     const double radius = c[0], fall_dv = c[1], slope_dv = c[2], shove_dv = c[3];
     const double dt = c[4], max_sigma = c[5], half_width = c[6], tolerance = c[7];
 
@@ -139,15 +147,8 @@ done:
  * radians per step of each axis. */
 static PyObject *act(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
-    if (nargs != 4) {
-        PyErr_SetString(PyExc_TypeError, "act takes 4 arguments");
-        return NULL;
-    }
     double rate[2];
-    for (int k = 0; k < 2; k++) {
-        rate[k] = PyFloat_AsDouble(args[2 + k]);
-        if (rate[k] == -1.0 && PyErr_Occurred()) return NULL;
-    }
+    if (arguments("act", args, nargs, 4, 2, rate) < 0) return NULL;
     Py_buffer actions, turn;
     if (PyObject_GetBuffer(args[0], &actions, PyBUF_RECORDS_RO) < 0) return NULL;
     const Py_ssize_t n = actions.ndim == 2 ? actions.shape[0] : -1;
@@ -177,10 +178,7 @@ static PyObject *act(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
 /* observe(state, obs): obs (n, 8) float32 <- the observation of Ball3D._observe. */
 static PyObject *observe(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
-    if (nargs != 2) {
-        PyErr_SetString(PyExc_TypeError, "observe takes 2 arguments");
-        return NULL;
-    }
+    if (arguments("observe", args, nargs, 2, 2, NULL) < 0) return NULL;
     const Py_ssize_t n = agents_in(args[0]);
     if (n < 0) return NULL;
     Py_buffer state, obs;
