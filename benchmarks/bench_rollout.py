@@ -89,11 +89,11 @@ def collector_loop(build_name: str, seconds: float, registry: str) -> dict:
         allocator=PortAllocator(registry_dir=registry),
     )
     try:
-        collector.collect()
+        collector.collect(512)
         started_steps = collector.snapshot().agent_steps
         started = time.perf_counter()
         while time.perf_counter() - started < seconds:
-            collector.collect()
+            collector.collect(512)
         elapsed = time.perf_counter() - started
         return {"agent_steps_per_s": (collector.snapshot().agent_steps - started_steps) / elapsed}
     finally:

@@ -3,8 +3,9 @@ an actor-critic loss (torchrl's ``A2CLoss``), for fully asynchronous collection.
 
 Unlike PPO, no step is dropped for being old: V-trace corrects each step against the
 log-probability of the policy that really acted, with truncated importance weights
-(``vtrace_rho_clip``, ``vtrace_c_clip``). One update per ``buffer_size`` steps: shuffled
-minibatches of whole ``[T]`` rows (V-trace runs along time), each its own gradient step.
+(``vtrace_rho_clip``, ``vtrace_c_clip``). One update per ``buffer_size`` steps: each epoch
+computes V-trace targets along every trajectory under the newest weights, then takes
+shuffled minibatches of steps, each its own gradient step.
 
 torchrl's ``VTrace`` module re-samples an action to get the current log-probability; the
 importance ratio needs the log-probability of the action taken, so this file evaluates
@@ -55,17 +56,19 @@ class IMPALA:
         self.max_lag_seen = 0
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
-        """Buffer a ``[B, T]`` segment; every valid step counts, however old."""
-        valid = segment[keys.VALID]
-        if valid.any():
-            self.max_lag_seen = max(self.max_lag_seen, int(lag[valid].max()))
+        """Buffer a packed segment; every step counts, however old."""
+        if lag.numel():
+            self.max_lag_seen = max(self.max_lag_seen, int(lag.max()))
         return self.buffer.add(segment)
 
     def ready(self) -> bool:
         return self.buffer.ready()
 
+    def wanted(self) -> None:
+        return None  # V-trace corrects old data: no need to wait for fresh weights
+
     def vtrace(self, rows: TensorDict) -> TensorDict:
-        """Set ``advantage`` and ``value_target`` on ``[B, T]`` rows (no gradient)."""
+        """Set ``advantage`` and ``value_target`` on packed trajectories (no gradient)."""
         h = self.settings.hyperparameters
         with torch.no_grad():
             log_pi = self.actor.get_dist(rows).log_prob(rows[FLAT_ACTION]).unsqueeze(-1)
@@ -95,15 +98,14 @@ class IMPALA:
         batch = self.buffer.take(self.network, self.settings.reward_strength)
         lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
         set_learning_rate(self.optimizer, lr)
-        rows_per_batch = max(1, h.batch_size // batch.shape[1])
         totals: dict[str, float] = {}
         samples, rho_sum, value_sum = 0, 0.0, 0.0
         for _ in range(h.num_epoch):
-            for index in torch.randperm(batch.shape[0]).split(rows_per_batch):
-                rows = self.vtrace(batch[index])  # targets under the newest weights
-                steps = rows[rows[keys.VALID]]
-                if len(steps) < 2:
+            batch = self.vtrace(batch)  # targets under the newest weights
+            for index in torch.randperm(len(batch)).split(h.batch_size):
+                if len(index) < 2:
                     continue
+                steps = batch[index]
                 gradient_step(self.loss, steps, self.optimizer, self.network, totals)
                 samples += len(steps)
                 rho_sum += float(steps["rho"].sum())

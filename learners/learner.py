@@ -36,6 +36,7 @@ class Algorithm(Protocol):
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int: ...
     def ready(self) -> bool: ...
+    def wanted(self) -> int | None: ...  # on-policy: steps missing before the next update
     def update(self, progress: float) -> dict[str, float]: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
@@ -114,18 +115,26 @@ class CentralLearner:
 
     # --- the learner contract -----------------------------------------------------------
 
-    def submit(self, segments: list[TensorDict]) -> int:
+    def submit(self, segments: list[TensorDict]) -> tuple[int, int | None]:
+        """Take segments, update behaviors whose data is ready; the newest version and the
+        demand (``rollout/learner_api.py``)."""
         started = time.perf_counter()
         for segment in segments:
             behavior = segment.get_non_tensor(keys.BEHAVIOR)
             state = self._behavior(behavior, segment.get_non_tensor(keys.SPEC))
             lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])
-            state.steps += int(segment[keys.VALID].sum())
+            state.steps += segment.batch_size[0]
             state.algorithm.add(segment, lag)
             if state.algorithm.ready():
                 self._update(behavior, state)
         self.stats.submit_seconds += time.perf_counter() - started
-        return self.version
+        return self.version, self.wanted()
+
+    def wanted(self) -> int | None:
+        """Steps before the next on-policy update of any behavior (None: no such behavior).
+        The service holds workers back beyond it, so that update trains on fresh data."""
+        wants = [w for s in self.behaviors.values() if (w := s.algorithm.wanted()) is not None]
+        return min(wants) if wants else None
 
     def weights(self) -> tuple[int, dict[str, dict[str, torch.Tensor]]]:
         return self.version, {name: s.network.state_dict() for name, s in self.behaviors.items()}

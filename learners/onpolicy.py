@@ -1,10 +1,10 @@
 """What PPO and IMPALA share: the buffer of segments waiting for the next update, and one
 gradient step on a torchrl loss.
 
-The buffer keeps whole ``[B, T]`` rows (advantage estimators run along time) and counts
-valid steps; ``take`` hands them over as one batch, observations folded into the running
-normalization, rewards scaled by the extrinsic signal's strength, actions joined into the
-flat action the torchrl actor scores.
+The buffer keeps whole packed segments (advantage estimators run along each trajectory,
+which ``done`` ends) and counts the steps that will train; ``take`` hands them over as one
+``[N]`` batch, observations folded into the running normalization, rewards scaled by the
+extrinsic signal's strength, actions joined into the flat action the torchrl actor scores.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ from learners.modules import add_flat_action
 from learners.policies import ActorCritic
 from rollout import keys
 
+TRAIN = "train"  # bool per step: counts in the loss (False: context for the estimator only)
+
 
 class SegmentBuffer:
     def __init__(self, buffer_size: int) -> None:
@@ -25,11 +27,11 @@ class SegmentBuffer:
         self.steps = 0
 
     def add(self, segment: TensorDict, keep: torch.Tensor | None = None) -> int:
-        """Buffer a segment; ``keep`` (per step) narrows which valid steps count."""
+        """Buffer a segment; ``keep`` (per step) narrows which steps train."""
         segment = segment.exclude(*keys.METADATA)
-        if keep is not None:
-            segment[keys.VALID] = segment[keys.VALID] & keep
-        steps = int(segment[keys.VALID].sum())
+        train = torch.ones(segment.batch_size, dtype=torch.bool) if keep is None else keep
+        segment[TRAIN] = train
+        steps = int(train.sum())
         if steps:
             self.segments.append(segment)
             self.steps += steps
@@ -38,11 +40,15 @@ class SegmentBuffer:
     def ready(self) -> bool:
         return self.steps >= self.buffer_size
 
+    def wanted(self) -> int:
+        """Steps still missing before the buffer is ready (at least 1)."""
+        return max(self.buffer_size - self.steps, 1)
+
     def take(self, network: ActorCritic, reward_strength: float) -> TensorDict:
         batch = torch.cat(self.segments, dim=0)
         self.segments, self.steps = [], 0
-        valid, obs = batch[keys.VALID], batch[keys.OBS]
-        network.update_normalization({n: obs[n][valid] for n in obs.keys()})  # noqa: SIM118
+        train, obs = batch[TRAIN], batch[keys.OBS]
+        network.update_normalization({n: obs[n][train] for n in obs.keys()})  # noqa: SIM118
         batch[keys.NEXT, keys.REWARD] = batch[keys.NEXT, keys.REWARD] * reward_strength
         return add_flat_action(batch)
 

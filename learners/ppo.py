@@ -24,6 +24,7 @@ from torchrl.objectives.value import GAE
 
 from learners.modules import FLAT_ACTION, probabilistic_actor, value_operator
 from learners.onpolicy import (
+    TRAIN,
     SegmentBuffer,
     actor_critic_report,
     gradient_step,
@@ -67,11 +68,14 @@ class PPO:
         """Buffer a ``[B, T]`` segment (``lag``: per step, updates of this behavior since
         the weights that acted); returns the steps that will count in the loss."""
         fresh = lag <= self.settings.hyperparameters.max_policy_lag
-        self.stale_steps += int((segment[keys.VALID] & ~fresh).sum())
+        self.stale_steps += int((~fresh).sum())
         return self.buffer.add(segment, keep=fresh)
 
     def ready(self) -> bool:
         return self.buffer.ready()
+
+    def wanted(self) -> int | None:
+        return self.buffer.wanted()
 
     # --- the update ---------------------------------------------------------------------
 
@@ -81,7 +85,7 @@ class PPO:
         batch = self.buffer.take(self.network, self.settings.reward_strength)
         with torch.no_grad():
             self.advantage(batch)
-        steps = batch[batch[keys.VALID]]  # [N]: valid steps, each with advantage and target
+        steps = batch[batch[TRAIN]]  # the steps that train, each with advantage and target
 
         lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
         set_learning_rate(self.optimizer, lr)

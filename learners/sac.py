@@ -1,7 +1,7 @@
 """SAC for one behavior, on torchrl pieces: ``SACLoss`` / ``DiscreteSACLoss``, ``SoftUpdate``
 and a ``TensorDictReplayBuffer``; continuous actions or a single masked discrete branch.
 
-``add`` turns every valid step of a ``[B, T]`` segment into a transition (obs, action,
+``add`` turns every step of a packed segment into a transition (obs, action,
 reward * strength, next obs, terminated, done; discrete: the masks of both states) in a
 replay buffer of ``buffer_size`` steps. ``ready`` once it holds ``max(buffer_init_steps,
 batch_size)`` steps and ``steps_per_update`` new ones came. ``update`` takes one gradient
@@ -197,10 +197,9 @@ class SAC:
     # --- data in ------------------------------------------------------------------------
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
-        """Every valid step of a ``[B, T]`` segment into the replay buffer (``lag`` unused:
-        replayed data is off-policy anyway); returns the steps added."""
-        valid = segment[keys.VALID]
-        steps = int(valid.sum())
+        """Every step of a packed segment into the replay buffer (``lag`` unused: replayed
+        data is off-policy anyway); returns the steps added."""
+        steps = segment.batch_size[0]
         if not steps:
             return 0
         nxt = segment[keys.NEXT]
@@ -225,8 +224,7 @@ class SAC:
         if self.network.branches:
             mask = segment[keys.ACTION_MASK]
             transitions[keys.ACTION_MASK] = mask
-            transitions[keys.NEXT, keys.ACTION_MASK] = next_mask(mask, valid, nxt[keys.DONE])
-        transitions = transitions[valid]
+            transitions[keys.NEXT, keys.ACTION_MASK] = next_mask(mask, nxt[keys.DONE])
         self.network.update_normalization(transitions[keys.OBS].to_dict())
         self.buffer.extend(transitions)
         before = self.received
@@ -237,6 +235,9 @@ class SAC:
     def ready(self) -> bool:
         h = self.settings.hyperparameters
         return len(self.buffer) >= self.threshold and self.new_steps >= h.steps_per_update
+
+    def wanted(self) -> None:
+        return None  # off-policy: any amount of data is welcome at any time
 
     # --- the update ---------------------------------------------------------------------
 
@@ -338,11 +339,11 @@ class SAC:
         self.dropped_gradient_steps = int(state.get("dropped_gradient_steps", 0))
 
 
-def next_mask(mask: torch.Tensor, valid: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+def next_mask(mask: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
     """The allowed-mask of each step's next state: the next step's own mask when it is in
-    the same row and the same episode; otherwise (row end, padding, episode end) all
-    allowed, as no mask was observed for that state."""
+    the same trajectory (packed trajectories end with ``done``); otherwise (episode end,
+    horizon cut) all allowed, as no mask was observed for that state."""
     result = torch.ones_like(mask)
-    follows = valid[:, 1:] & ~done[:, :-1, 0]
-    result[:, :-1] = torch.where(follows.unsqueeze(-1), mask[:, 1:], True)
+    follows = ~done[:-1, 0]
+    result[:-1] = torch.where(follows.unsqueeze(-1), mask[1:], True)
     return result

@@ -4,7 +4,10 @@ and a segment builder per behavior. Plain Python (no Ray), so it runs in-process
 
 Loop of one exchange: for every behavior, read the decision and terminal steps, complete
 transitions, gather finished rows, ask the policy for actions (one batched call per
-behavior), then step Unity. Weights are loaded only between ``collect`` calls. When the
+behavior), then step Unity. A ``collect`` call runs exchanges until enough steps of
+finished rows are there, and returns them as one packed segment per behavior: how much a
+call gathers is the transport's choice, independent of where rows are cut. Weights are
+loaded only between ``collect`` calls. When the
 player fails, partial rows are dropped (and counted), never sent, and the instance
 restarts on a fresh port.
 """
@@ -110,42 +113,46 @@ class Collector:
 
     # --- collection ---------------------------------------------------------------------
 
-    def collect(self, min_rows: int = 1, max_exchanges: int = 100_000) -> list[TensorDict]:
-        """Step Unity until at least ``min_rows`` rows are finished; returns the segments
-        (one ``[B, T]`` TensorDict per behavior that finished rows)."""
+    def collect(
+        self, min_steps: int = 1, max_seconds: float | None = None, max_exchanges: int = 100_000
+    ) -> list[TensorDict]:
+        """Step Unity until at least ``min_steps`` steps of finished rows are here (or
+        ``max_seconds`` passed, or ``max_exchanges``); returns one packed segment per
+        behavior that finished rows."""
         if not self._started:
             self.start()
         started = time.perf_counter()
-        segments: list[TensorDict] = []
-        rows = 0
+        deadline = started + max_seconds if max_seconds is not None else None
+        pieces: dict[str, list[TensorDict]] = {}
+        steps = 0
         for _ in range(max_exchanges):
             try:
-                rows += self._exchange(segments)
+                steps += self._exchange(pieces)
             except RECOVERABLE as error:
                 self._recover(error)
                 continue
-            if rows >= min_rows:
+            if steps >= min_steps or (deadline is not None and time.perf_counter() >= deadline):
                 break
         self.metrics.seconds += time.perf_counter() - started
-        return segments
+        return [parts[0] if len(parts) == 1 else torch.cat(parts) for parts in pieces.values()]
 
-    def _exchange(self, segments: list[TensorDict]) -> int:
-        unity, rows = self.unity, 0
+    def _exchange(self, pieces: dict[str, list[TensorDict]]) -> int:
+        unity, steps = self.unity, 0
         for behavior, spec in unity.behavior_specs.items():
             builder = self.builders.get(behavior) or self._add_behavior(behavior, spec)
             decisions, terminals = unity.get_steps(behavior)
             builder.observe(decisions, terminals)
             finished = builder.collect(self.metrics.env_steps)
             if finished is not None:
-                segments.append(finished)
-                rows += finished.batch_size[0]
+                pieces.setdefault(behavior, []).append(finished)
+                steps += finished.batch_size[0]
             if len(decisions):
                 chosen = self._act(behavior, spec, decisions)
                 builder.act(decisions, chosen, self.version)
         unity.step()
         unity.healthy_step()
         self.metrics.env_steps += 1
-        return rows
+        return steps
 
     def _add_behavior(self, behavior: str, spec: BehaviorSpec) -> SegmentBuilder:
         builder = SegmentBuilder(behavior, spec, self.horizon, worker=self.worker)

@@ -16,7 +16,6 @@ LOG_PROB = "sample_log_prob"  # float32: log-probability of the action under the
 POLICY_VERSION = "policy_version"  # int64: version of the weights that chose the action
 AGENT_ID = "agent_id"  # int64: Unity's agent id (unique within a behavior)
 GROUP_ID = "group_id"  # int64: multi-agent group, 0 = none
-VALID = "valid"  # bool: False on padding after the end of a short row
 
 NEXT = "next"
 REWARD = "reward"  # ("next", REWARD) float32 [1]: reward since the decision

@@ -3,9 +3,11 @@
 The service forwards each worker's segments (an ObjectRef to ``list[TensorDict]``, the
 format of docs/batch-format.md) with ``submit``; it keeps at most a few submissions in
 flight, so a slow learner slows collection instead of growing a queue. ``submit`` returns
-the learner's newest weights version; when it is newer than what workers have, the service
-fetches ``weights()`` once (one object per version) and passes it to every worker's next
-``collect``.
+the learner's newest weights version, and its demand: how many more steps it wants before
+its next on-policy update (None: any amount, as off-policy learners take). When the
+version is newer than what workers have, the service fetches ``weights()`` once (one
+object per version) and passes it to every worker's next ``collect``; while the steps in
+flight cover the demand, it lets idle workers wait for those weights.
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ from rollout.collector import Weights
 
 
 class Learner(Protocol):
-    def submit(self, segments: list[TensorDict]) -> int:
-        """Consume segments; return the newest weights version."""
+    def submit(self, segments: list[TensorDict]) -> tuple[int, int | None]:
+        """Consume segments; return the newest weights version and the demand."""
         ...
 
     def weights(self) -> tuple[int, Weights]:

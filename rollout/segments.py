@@ -1,14 +1,17 @@
-"""Trajectory assembly for one behavior: per-agent transitions into ``[B, T]`` segments.
+"""Trajectory assembly for one behavior: per-agent transitions into packed trajectories.
 
 Unity reports, per exchange, the agents that need a decision and those whose episode ended
 (the same agent may be in both; agents appear, disappear and move between behaviors). A
 transition is (observation, action) at a decision, completed by the agent's *next* info:
 a terminal one (``done``; ``terminated`` unless interrupted, else ``truncated``) or a
-decision one (not done). Each agent fills a row of ``T`` transitions, across episode
-boundaries; a full row is emitted and the agent starts a new one. An agent that ended and
-has not come back for ``gone_after`` exchanges (DungeonEscape's sacrificed agent, an agent
-that switched behavior) has its partial row emitted, padded, with ``valid`` False after
-its last step.
+decision one (not done). Each agent fills a row until its episode ends or the row holds
+``horizon`` transitions (ML-Agents' ``time_horizon``), whichever comes first, exactly when
+ML-Agents' agent processor hands a trajectory to its trainer; a row cut at the horizon
+gets ``truncated`` (and ``done``) on its last step, so the learner bootstraps there.
+Finished rows leave packed: one ``[N]`` TensorDict, each row's steps contiguous and in
+order, no padding. An agent silent for ``STALE_FACTOR * gone_after`` exchanges without a
+terminal info has its row cut the same way; an ended agent that does not come back within
+``gone_after`` exchanges gives its slot up.
 
 Everything is vectorized over the agents of the exchange: numpy fancy indexing into
 per-slot buffers, never a Python loop over agents.
@@ -27,6 +30,7 @@ from rollout import keys, specs
 
 INITIAL_SLOTS = 16
 STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
+GONE_AFTER = 64  # at least: exchanges an ended agent may stay away before its slot is freed
 
 
 @dataclass(frozen=True)
@@ -50,7 +54,8 @@ class SegmentBuilder:
     """Builds ``[B, T]`` TensorDict segments for one behavior.
 
     Per exchange: ``observe(decisions, terminals)``, then ``collect()`` for finished rows,
-    then ``act(decisions, chosen, policy_version)`` with the policy's choices.
+    then ``act(decisions, chosen, policy_version)`` with the policy's choices. Row storage
+    is ``(slots, horizon)`` per field, so the horizon bounds memory per agent.
     """
 
     def __init__(
@@ -66,7 +71,7 @@ class SegmentBuilder:
         self._spec_dict = specs.spec_to_dict(spec)  # travels with each segment to the learner
         self.horizon = horizon
         self.worker = worker
-        self.gone_after = gone_after or horizon
+        self.gone_after = gone_after or max(horizon, GONE_AFTER)
         self.counters = Counters()
         self.episodes: list[tuple[np.ndarray, np.ndarray]] = []  # (returns, lengths) batches
         self._sensors = [(o.name, o.shape) for o in spec.observation_specs]
@@ -244,38 +249,43 @@ class SegmentBuilder:
         f["pending"][slots] = True
 
     def collect(self, env_steps: int = 0) -> TensorDict | None:
-        """Finished rows as one ``[B, T]`` TensorDict, or None when no row is finished."""
+        """Finished rows as one packed ``[N]`` TensorDict, or None when none finished."""
         f = self._f
         active = f["agent"] >= 0
-        is_full = active & (f["length"] == self.horizon)
-        full = np.flatnonzero(is_full)
-        # A full row is emitted as such; its agent may leave at the next collect.
-        gone = np.flatnonzero(active & ~is_full & f["ended"] & (f["idle"] > self.gone_after))
-        silent = f["idle"] > STALE_FACTOR * self.gone_after
-        stale = np.flatnonzero(active & ~is_full & ~f["ended"] & silent)
-        if len(stale):  # vanished without a terminal info: cut the row there
-            with_steps = stale[f["length"][stale] > 0]
-            last = f["length"][with_steps] - 1
-            f["done"][with_steps, last] = True
-            f["truncated"][with_steps, last] = True
-            self.counters.dropped_steps += int(f["pending"][stale].sum())
-        leaving = np.concatenate([gone, stale])
-        rows = np.concatenate([full, leaving[f["length"][leaving] > 0]])
+        length = f["length"]
+        last = np.maximum(length - 1, 0)
+        ended_row = active & (length > 0) & f["done"][np.arange(len(length)), last]
+        full = active & (length == self.horizon)
+        silent = active & ~f["ended"] & (f["idle"] > STALE_FACTOR * self.gone_after)
+        if silent.any():  # vanished without a terminal info: its pending step is lost
+            self.counters.dropped_steps += int(f["pending"][silent].sum())
+        rows = np.flatnonzero(ended_row | full | (silent & (length > 0)))
         batch = self._rows(rows, env_steps) if len(rows) else None
-        f["length"][full] = 0
-        f["agent"][leaving] = -1
+        length[rows] = 0
+        gone = active & f["ended"] & (f["idle"] > self.gone_after)
+        f["agent"][gone | silent] = -1
         return batch
 
     def _rows(self, slots: np.ndarray, env_steps: int) -> TensorDict:
-        f, n, t = self._f, len(slots), self.horizon
-        valid = np.arange(t)[None, :] < f["length"][slots][:, None]
+        f = self._f
+        lengths = f["length"][slots]
+        n = int(lengths.sum())
+        row_of = np.repeat(slots, lengths)  # per packed step: its slot and its time index
+        starts = np.cumsum(lengths) - lengths
+        time = np.arange(n) - np.repeat(starts, lengths)
+        ends = starts + lengths - 1
+        # A row that stops short of an episode end is a cut: bootstrap from its last step.
+        done = f["done"][row_of, time]
+        truncated = f["truncated"][row_of, time]
+        cut = ends[~done[ends]]
+        done[cut], truncated[cut] = True, True
 
         def take(name: str, scalar: bool = False) -> torch.Tensor:
-            values = np.where(
-                valid.reshape(valid.shape + (1,) * (f[name].ndim - 2)), f[name][slots], 0
-            )
-            tensor = torch.from_numpy(values.astype(f[name].dtype, copy=False))
+            tensor = torch.from_numpy(f[name][row_of, time])
             return tensor.unsqueeze(-1) if scalar else tensor
+
+        def flag(values: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(values).unsqueeze(-1)
 
         action = {}
         if self._continuous:
@@ -288,25 +298,24 @@ class SegmentBuilder:
             keys.LOG_PROB: take("logp"),
             keys.POLICY_VERSION: take("version"),
             keys.GROUP_ID: take("group"),
-            keys.AGENT_ID: torch.from_numpy(f["agent"][slots]).unsqueeze(1).expand(n, t),
-            keys.VALID: torch.from_numpy(valid),
-            keys.WORKER: torch.full((n, t), self.worker, dtype=torch.int64),
-            keys.ENV_STEPS: torch.full((n, t), env_steps, dtype=torch.int64),
+            keys.AGENT_ID: torch.from_numpy(f["agent"][row_of]),
+            keys.WORKER: torch.full((n,), self.worker, dtype=torch.int64),
+            keys.ENV_STEPS: torch.full((n,), env_steps, dtype=torch.int64),
             keys.NEXT: {
                 keys.OBS: {name: take(f"next/{name}") for name, _ in self._sensors},
                 keys.REWARD: take("reward", scalar=True),
                 keys.GROUP_REWARD: take("group_reward", scalar=True),
-                keys.DONE: take("done", scalar=True),
+                keys.DONE: flag(done),
                 keys.TERMINATED: take("terminated", scalar=True),
-                keys.TRUNCATED: take("truncated", scalar=True),
+                keys.TRUNCATED: flag(truncated),
             },
         }
         if self._mask_size:
-            data[keys.ACTION_MASK] = torch.from_numpy(f["mask"][slots].copy())
-        batch = TensorDict(data, batch_size=[n, t])
+            data[keys.ACTION_MASK] = take("mask")
+        batch = TensorDict(data, batch_size=[n])
         batch.set_non_tensor(keys.BEHAVIOR, self.behavior)
         batch.set_non_tensor(keys.SPEC, self._spec_dict)
-        self.counters.rows += n
+        self.counters.rows += len(slots)
         return batch
 
     def drain_episodes(self) -> tuple[np.ndarray, np.ndarray]:

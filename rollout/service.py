@@ -10,11 +10,18 @@ Data flow (all ObjectRefs; the driver never touches segment data)::
 Back-pressure: each worker has at most ``collects_per_worker`` collect calls in flight,
 and at most ``learner_in_flight`` submissions wait at the learner; while the learner is
 behind, no new collect is issued. Nothing queues without bound.
+
+Demand: ``submit`` also answers how many more steps the learner wants before its next
+update of an on-policy behavior (PPO), or None. While steps already in flight cover that
+demand, idle workers wait for the new weights instead of acting with old ones: each
+update then trains on data of the policy it improves, as in mlagents-learn's synchronous
+loop. Off-policy and V-trace learners answer None and keep every worker busy.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -47,8 +54,9 @@ def _last_line(error: Exception) -> str:
 class ServiceConfig:
     unity: UnityConfig
     num_workers: int = 2
-    horizon: int = 64  # T: steps per segment row (ML-Agents' time_horizon)
-    min_rows: int = 1  # rows a collect call waits for before returning
+    horizon: int = 64  # steps after which a row is cut (ML-Agents' time_horizon)
+    min_steps: int = 512  # steps of finished rows a collect call waits for (no demand)
+    max_collect_s: float = 0.5  # ... or this long, so data and metrics keep flowing
     collects_per_worker: int = 1
     learner_in_flight: int = 2
     worker_cpus: float = 1.0
@@ -113,8 +121,11 @@ class RolloutService:
         self._version = 0
         self._weights_ref: ray.ObjectRef | None = None
         self._worker_version: list[int] = []
-        self._collects: dict[ray.ObjectRef, int] = {}  # collect ref -> worker index
+        self._collects: dict[ray.ObjectRef, tuple[int, int]] = {}  # -> (worker, min steps)
+        self._idle: set[int] = set()  # workers that can take another collect
         self._submits: list[ray.ObjectRef] = []
+        self._submit_steps: dict[ray.ObjectRef, int] = {}  # steps each submission carries
+        self._wanted: int | None = None  # the learner's last answer: steps before its update
         self._failures: list[int] = []  # consecutive failed collects per worker
         self._restarting: dict[int, float] = {}  # worker index -> when it went away
         self._retry_at: dict[int, float] = {}  # worker index -> when to ask it again
@@ -142,14 +153,17 @@ class RolloutService:
         # A resumed learner already has trained weights: workers start from them.
         self._weights_ref = self.learner.weights.remote()
         self._version = int(ray.get(self._weights_ref)[0])
+        self._wanted = ray.get(self.learner.submit.remote([]))[1]
         self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
         self._worker_version = [0] * len(self.workers)
         self._failures = [0] * len(self.workers)
         self._restarting.clear()
         self._retry_at.clear()
+        self._idle = set(range(len(self.workers)))
         for index in range(len(self.workers)):
-            for _ in range(self.config.collects_per_worker):
+            for _ in range(self.config.collects_per_worker - 1):
                 self._issue(index)
+        self._pump()
 
     def stop(self) -> None:
         """Close every worker's Unity instance, then end the actors."""
@@ -163,6 +177,8 @@ class RolloutService:
         self.workers = []
         self._collects.clear()
         self._submits.clear()
+        self._submit_steps.clear()
+        self._idle.clear()
 
     def __enter__(self) -> RolloutService:
         self.start()
@@ -173,11 +189,34 @@ class RolloutService:
 
     # --- routing ------------------------------------------------------------------------
 
-    def _issue(self, index: int) -> None:
+    def _issue(self, index: int, min_steps: int | None = None) -> None:
         weights = self._weights_ref if self._worker_version[index] < self._version else None
-        ref = self.workers[index].collect.remote(self._version, weights, self.config.min_rows)
+        steps = min_steps or self.config.min_steps
+        ref = self.workers[index].collect.remote(
+            self._version, weights, steps, self.config.max_collect_s
+        )
         self._worker_version[index] = self._version
-        self._collects[ref] = index
+        self._collects[ref] = (index, steps)
+
+    def _pump(self) -> None:
+        """Give idle workers a collect, as far as the learner's demand reaches."""
+        idle = [i for i in self._idle if i not in self._retry_at]
+        if not idle:
+            return
+        if self._wanted is None:
+            for index in idle:
+                self._issue(index)
+            self._idle.difference_update(idle)
+            return
+        coming = sum(steps for _, steps in self._collects.values())
+        coming += sum(self._submit_steps.values())
+        missing = self._wanted - coming
+        if missing <= 0:
+            return  # in flight already fills the next update: wait for its weights
+        share = math.ceil(missing / len(idle))
+        for index in idle:
+            self._issue(index, share)
+        self._idle.difference_update(idle)
 
     def step(self, timeout: float = 60.0) -> int:
         """Route one finished collect to the learner; returns the segments routed."""
@@ -185,17 +224,21 @@ class RolloutService:
         now = time.perf_counter()
         for index in [i for i, at in self._retry_at.items() if at <= now]:
             del self._retry_at[index]
-            self._issue(index)
+            self._idle.add(index)
+        self._pump()
         if self._retry_at:  # come back in time for the next retry
             timeout = max(0.0, min(timeout, min(self._retry_at.values()) - now))
         if not self._collects:
-            time.sleep(timeout)
+            if self._submits:  # waiting on the learner: its answer opens new collects
+                self._drain_submits(block=True, timeout=timeout)
+            else:
+                time.sleep(timeout)
             return 0
         ready, _ = ray.wait(list(self._collects), num_returns=1, timeout=timeout)
         if not ready:
             return 0
         ref = ready[0]
-        index = self._collects.pop(ref)
+        index, _ = self._collects.pop(ref)
         try:
             segments = ray.get(ref)
         except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
@@ -215,13 +258,16 @@ class RolloutService:
             return 0
         except RayActorError as error:
             self._count_failure(index, error)
-            self._issue(index)
+            self._idle.add(index)
             return 0
         self._failures[index] = 0
         self._restarting.pop(index, None)
-        self._submits.append(self.learner.submit.remote(ref))
-        self._observe(segments)
-        self._issue(index)
+        self._idle.add(index)
+        if segments:
+            submit = self.learner.submit.remote(ref)
+            self._submits.append(submit)
+            self._submit_steps[submit] = sum(s.batch_size[0] for s in segments)
+            self._observe(segments)
         return len(segments)
 
     def _count_failure(self, index: int, error: RayActorError) -> None:
@@ -236,15 +282,17 @@ class RolloutService:
         log.warning("worker %d died (%s); Ray restarts it", index, error)
         self._worker_version[index] = 0  # a restarted worker needs the weights again
 
-    def _drain_submits(self, block: bool) -> None:
+    def _drain_submits(self, block: bool, timeout: float | None = None) -> None:
         if not self._submits:
             return
         done, self._submits = ray.wait(
             self._submits,
             num_returns=1 if block else len(self._submits),
-            timeout=None if block else 0,
+            timeout=timeout if block else 0,
         )
-        for version in ray.get(done):
+        for ref, (version, wanted) in zip(done, ray.get(done), strict=True):
+            del self._submit_steps[ref]
+            self._wanted = wanted
             if version > self._version:
                 self._version = version
                 self._weights_ref = self.learner.weights.remote()
@@ -252,8 +300,7 @@ class RolloutService:
     def _observe(self, segments: list) -> None:
         for segment in segments:
             self.metrics.segments += 1
-            valid = segment[keys.VALID]
-            lag = self._version - segment[keys.POLICY_VERSION][valid]
+            lag = self._version - segment[keys.POLICY_VERSION]
             if lag.numel():
                 self.metrics.policy_lag_max = max(self.metrics.policy_lag_max, int(lag.max()))
                 self.metrics.policy_lag_sum += int(lag.sum())

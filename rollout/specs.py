@@ -42,7 +42,7 @@ def action_spec(spec: BehaviorSpec) -> Composite:
 
 
 def step_spec(spec: BehaviorSpec) -> Composite:
-    """One step of a segment row: what the worker records per decision and its outcome."""
+    """One step of a segment: what the worker records per decision and its outcome."""
     scalar_float = Unbounded((1,), dtype=torch.float32)
     flag = Binary(1, shape=(1,), dtype=torch.bool)
     entries = {
@@ -52,7 +52,6 @@ def step_spec(spec: BehaviorSpec) -> Composite:
         keys.POLICY_VERSION: Unbounded((), dtype=torch.int64),
         keys.AGENT_ID: Unbounded((), dtype=torch.int64),
         keys.GROUP_ID: Unbounded((), dtype=torch.int64),
-        keys.VALID: Binary(shape=(), dtype=torch.bool),
         keys.NEXT: Composite(
             {
                 keys.OBS: observation_spec(spec),

@@ -1,13 +1,16 @@
 """A minimal learner stand-in for tests and benchmarks of the rollout side.
 
-It consumes segments, counts what it got (steps, rows, bytes, the policy versions that
-acted), and publishes a new weights version every ``bump_every`` submissions. The
-weights themselves are empty: workers keep their own and stamp the newer version, so
-tests and benchmarks can see versions reach the workers and measure policy lag.
+It consumes segments, counts what it got (steps, trajectories, bytes, the policy versions
+that acted), and publishes a new weights version every ``bump_every`` submissions, or, with
+a ``demand``, once that many steps came since the last version (as an on-policy learner
+would, "updating" for ``update_seconds``). The weights themselves are empty: workers keep
+their own and stamp the newer version, so tests and benchmarks can see versions reach the
+workers and measure policy lag.
 """
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 
 from tensordict import TensorDict
@@ -17,26 +20,39 @@ from rollout.collector import Weights
 
 
 class CountingLearner:
-    def __init__(self, bump_every: int = 2) -> None:
+    def __init__(
+        self, bump_every: int = 2, demand: int | None = None, update_seconds: float = 0.0
+    ) -> None:
         self.bump_every = bump_every
+        self.demand, self.update_seconds = demand, update_seconds
+        self.since_bump = 0  # steps since the last version (with a demand)
         self.version = 0
         self.submissions = 0
-        self.valid_steps: Counter[str] = Counter()
-        self.rows: Counter[str] = Counter()
+        self.steps: Counter[str] = Counter()
+        self.trajectories: Counter[str] = Counter()
         self.bytes = 0
         self.versions_seen: Counter[int] = Counter()
 
-    def submit(self, segments: list[TensorDict]) -> int:
+    def submit(self, segments: list[TensorDict]) -> tuple[int, int | None]:
         for segment in segments:
             behavior = segment.get_non_tensor(keys.BEHAVIOR)
-            self.valid_steps[behavior] += int(segment[keys.VALID].sum())
-            self.rows[behavior] += segment.batch_size[0]
+            self.steps[behavior] += segment.batch_size[0]
+            self.trajectories[behavior] += int(segment[keys.NEXT, keys.DONE].sum())
             self.bytes += int(segment.bytes())
-            self.versions_seen.update(segment[keys.POLICY_VERSION][segment[keys.VALID]].tolist())
+            self.versions_seen.update(segment[keys.POLICY_VERSION].tolist())
+            self.since_bump += segment.batch_size[0]
+        if not segments:
+            return self.version, self._wanted()
         self.submissions += 1
-        if self.submissions % self.bump_every == 0:
+        if self.demand is None and self.submissions % self.bump_every == 0:
             self.version += 1
-        return self.version
+        if self.demand is not None and self.since_bump >= self.demand:
+            time.sleep(self.update_seconds)
+            self.version, self.since_bump = self.version + 1, 0
+        return self.version, self._wanted()
+
+    def _wanted(self) -> int | None:
+        return None if self.demand is None else self.demand - self.since_bump
 
     def weights(self) -> tuple[int, Weights]:
         return self.version, {}
@@ -45,8 +61,8 @@ class CountingLearner:
         return {
             "version": self.version,
             "submissions": self.submissions,
-            "valid_steps": dict(self.valid_steps),
-            "rows": dict(self.rows),
+            "steps": dict(self.steps),
+            "trajectories": dict(self.trajectories),
             "bytes": self.bytes,
             "versions_seen": dict(self.versions_seen),
         }

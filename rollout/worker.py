@@ -43,13 +43,17 @@ class RolloutWorker:
         self.collector.start()
 
     def collect(
-        self, version: int, published: tuple[int, Weights] | None, min_rows: int
+        self,
+        version: int,
+        published: tuple[int, Weights] | None,
+        min_steps: int,
+        max_seconds: float | None = None,
     ) -> list[TensorDict]:
         """``published``: the learner's ``weights()`` result, (version, weights), or None
         when this worker already has the newest version."""
         if published is not None:
             self.collector.load_weights(*published)
-        return self.collector.collect(min_rows)
+        return self.collector.collect(min_steps, max_seconds)
 
     def metrics(self) -> CollectorMetrics:
         return self.collector.snapshot()

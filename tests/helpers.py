@@ -1,4 +1,4 @@
-"""Small helpers shared by the tests that start processes."""
+"""Small helpers shared by the tests that start processes and read their segments."""
 
 from __future__ import annotations
 
@@ -11,7 +11,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import psutil
+import torch
+from tensordict import TensorDict
 
+from rollout import keys
 from rollout.ports import PortAllocator, PortRange, ephemeral_range
 
 # Above the kernel's ephemeral range (32768-60999 by default): no outgoing connection (a
@@ -65,3 +68,12 @@ def leak_checked_allocator(
     allocator = PortAllocator(PortRange(first, last), tmp_path / "ports", **kwargs)
     yield allocator
     assert allocator.leases() == {}, "a test left a port leased"
+
+
+def trajectories(segment: TensorDict) -> list[slice]:
+    """The packed trajectories of a segment: each ends with ``done``, the last one too."""
+    done = segment[keys.NEXT, keys.DONE][:, 0]
+    ends = torch.nonzero(done)[:, 0].tolist()
+    assert ends and ends[-1] == len(done) - 1, "every trajectory ends with done"
+    starts = [0] + [end + 1 for end in ends[:-1]]
+    return [slice(start, end + 1) for start, end in zip(starts, ends, strict=True)]

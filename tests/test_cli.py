@@ -36,7 +36,7 @@ def test_collect_runs_the_pipeline_and_cleans_up(tmp_path):
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "agent steps" in result.stdout
-    assert "'valid_steps': {'Basic?team=0':" in result.stdout.replace("\n", "")
+    assert "'steps': {'Basic?team=0':" in result.stdout.replace("\n", "")
     assert "Basic?team=0: " in result.stdout  # mean return reported per behavior
 
 

@@ -32,16 +32,21 @@ def vector_spec(size: int = 4, continuous: int = 0, branches: tuple[int, ...] = 
 def segment(
     spec: BehaviorSpec, rows: int, steps: int, behavior: str = "B?team=0", seed: int = 0
 ) -> TensorDict:
-    """Random but well-formed rows: all valid, no episode end, every action allowed."""
+    """Random but well-formed packed segment of ``rows`` trajectories of ``steps`` steps
+    each, every one cut at its last step (``truncated``, as at a horizon cut), no episode
+    end, every action allowed."""
     torch.manual_seed(seed)
-    batch = step_spec(spec).expand(rows, steps).rand()
-    batch[keys.VALID] = torch.ones(rows, steps, dtype=torch.bool)
-    for flag in (keys.DONE, keys.TERMINATED, keys.TRUNCATED):
-        batch[keys.NEXT, flag] = torch.zeros(rows, steps, 1, dtype=torch.bool)
+    n = rows * steps
+    batch = step_spec(spec).expand(n).rand()
+    cut = torch.zeros(n, 1, dtype=torch.bool)
+    cut[steps - 1 :: steps] = True
+    batch[keys.NEXT, keys.DONE] = cut
+    batch[keys.NEXT, keys.TRUNCATED] = cut.clone()
+    batch[keys.NEXT, keys.TERMINATED] = torch.zeros(n, 1, dtype=torch.bool)
     if spec.action_spec.discrete_branches:
         batch[keys.ACTION_MASK] = torch.ones_like(batch[keys.ACTION_MASK])
-    batch[keys.POLICY_VERSION] = torch.zeros(rows, steps, dtype=torch.int64)
-    batch[keys.LOG_PROB] = torch.full((rows, steps), -1.0)
+    batch[keys.POLICY_VERSION] = torch.zeros(n, dtype=torch.int64)
+    batch[keys.LOG_PROB] = torch.full((n,), -1.0)
     batch.set_non_tensor(keys.BEHAVIOR, behavior)
     batch.set_non_tensor(keys.SPEC, spec_to_dict(spec))
     return batch

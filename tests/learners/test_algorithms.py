@@ -55,14 +55,15 @@ def on_policy(network: ActorCritic, batch):
 
 
 def one_row(spec, rewards, terminated=(), truncated=()):
+    """Packed steps of one agent, cut after the last (bootstrap there), with episode ends."""
     row = segment(spec, 1, len(rewards))
-    row[keys.NEXT, keys.REWARD] = torch.tensor(rewards, dtype=torch.float32).view(1, -1, 1)
+    row[keys.NEXT, keys.REWARD] = torch.tensor(rewards, dtype=torch.float32).view(-1, 1)
     for t in terminated:
-        row[keys.NEXT, keys.TERMINATED][0, t] = True
-        row[keys.NEXT, keys.DONE][0, t] = True
+        row[keys.NEXT, keys.TERMINATED][t] = True
+        row[keys.NEXT, keys.DONE][t] = True
     for t in truncated:
-        row[keys.NEXT, keys.TRUNCATED][0, t] = True
-        row[keys.NEXT, keys.DONE][0, t] = True
+        row[keys.NEXT, keys.TRUNCATED][t] = True
+        row[keys.NEXT, keys.DONE][t] = True
     return add_flat_action(row.exclude(*keys.METADATA))
 
 
@@ -74,7 +75,7 @@ def test_gae_matches_a_hand_computed_case(end, expected):
     # V = 0.5, gamma 0.9, lambda 0.8, rewards (1, 0, 2), the episode ends after step 1.
     # d0 = 1 + .9*.5 - .5 = .95; d1 = 0 - .5 (terminated) or 0 + .45 - .5 (truncated:
     # bootstrap from the final observation); d2 = 2 + .45 - .5 = 1.95 (row end: bootstrap)
-    # A1 = d1 (the end cuts the trace); A0 = d0 + .9*.8*A1.
+    # A1 = d1 (the end cuts the trace); A0 = d0 + .9*.8*A1. Step 2 starts a new trajectory.
     spec = vector_spec(branches=(2,))
     ppo = PPO(constant_value_network(spec), settings(lambd=0.8))
     row = one_row(spec, [1.0, 0.0, 2.0], **{end: [1]})
@@ -95,7 +96,7 @@ def test_vtrace_matches_a_hand_computed_case():
     spec = vector_spec(branches=(2,))
     impala = IMPALA(constant_value_network(spec), settings("impala"))
     row = one_row(spec, [1.0, 2.0])
-    row[keys.LOG_PROB] = torch.tensor([[math.log(0.25), 0.0]])
+    row[keys.LOG_PROB] = torch.tensor([math.log(0.25), 0.0])
     impala.vtrace(row)
     assert row["value_target"].view(-1).tolist() == pytest.approx([2.3275, 1.475], abs=1e-5)
     assert row["advantage"].view(-1).tolist() == pytest.approx([1.8275, 0.975], abs=1e-5)
@@ -117,7 +118,7 @@ def test_losses_go_down_on_a_fixed_batch(trainer, actions):
     batch[keys.NEXT, keys.REWARD] = batch[keys.OBS, "vector"][..., :1] * 2
     reports = []
     for _ in range(30 if trainer == "ppo" else 90):  # IMPALA: 1 epoch, PPO: 3
-        algorithm.add(batch.clone(), torch.zeros(8, 16, dtype=torch.int64))
+        algorithm.add(batch.clone(), torch.zeros(8 * 16, dtype=torch.int64))
         assert algorithm.ready()
         reports.append(algorithm.update(progress=0.0))
     first, last = reports[0], reports[-1]
@@ -137,7 +138,7 @@ def test_policy_gradient_raises_the_log_prob_of_advantaged_actions():
     obs = {"vector": batch[keys.OBS, "vector"]}
     before = torch.softmax(network.logits(network.features(obs)), -1)[..., 2].mean()
     for _ in range(20):
-        ppo.add(batch.clone(), torch.zeros(8, 16, dtype=torch.int64))
+        ppo.add(batch.clone(), torch.zeros(8 * 16, dtype=torch.int64))
         ppo.update(progress=0.0)
     after = torch.softmax(network.logits(network.features(obs)), -1)[..., 2].mean()
     # the ratio to the behavior policy is clipped at 1 + epsilon (0.2): a bounded rise
@@ -147,7 +148,7 @@ def test_policy_gradient_raises_the_log_prob_of_advantaged_actions():
 def test_ppo_drops_steps_older_than_max_policy_lag():
     spec = vector_spec(continuous=2)
     ppo = PPO(ActorCritic(spec), settings(max_policy_lag=2, batch_size=8, buffer_size=16))
-    lag = torch.tensor([[0, 1, 2, 3, 4, 5, 0, 0]])
+    lag = torch.tensor([0, 1, 2, 3, 4, 5, 0, 0])
     assert ppo.add(segment(spec, 1, 8), lag) == 5
     assert ppo.stale_steps == 3 and ppo.buffer.steps == 5 and not ppo.ready()
 
@@ -179,11 +180,12 @@ def test_learner_versions_weights_and_checkpoint_round_trip():
     )
     learner = CentralLearner(config)
     specs = {"A?team=0": vector_spec(continuous=2), "B?team=0": vector_spec(branches=(3,))}
-    assert learner.submit([segment(specs["A?team=0"], 2, 16, "A?team=0")]) == 0  # 32 < 64
-    version = learner.submit(
+    assert learner.submit([]) == (0, None)  # no on-policy behavior seen yet
+    assert learner.submit([segment(specs["A?team=0"], 2, 16, "A?team=0")]) == (0, 32)
+    version, wanted = learner.submit(
         [segment(s, 4, 16, name) for name, s in specs.items()]  # both reach their buffer
     )
-    assert version == 2
+    assert version == 2 and wanted == 64  # PPO's next update; IMPALA wants no pause
     progress = learner.progress()
     assert progress["steps"] == {"A?team=0": 96, "B?team=0": 64}
     assert not progress["done"]
@@ -210,14 +212,14 @@ def test_hybrid_actions_are_shaped_right_and_masks_hold_in_the_torchrl_actor():
     batch[keys.ACTION_MASK][..., 1] = False  # branch 0, action 1 forbidden
     dist = actor.get_dist(batch.exclude(*keys.METADATA))
     sample = dist.sample()
-    assert sample.shape == (64, 8, 2 + 2)  # 2 continuous + one index per branch
+    assert sample.shape == (64 * 8, 2 + 2)  # 2 continuous + one index per branch
     assert not (sample[..., 2] == 1).any()
     assert set(sample[..., 2].unique().tolist()) == {0.0, 2.0}
     assert set(sample[..., 3].unique().tolist()) == {0.0, 1.0}
-    assert dist.log_prob(sample).shape == (64, 8)
-    assert dist.entropy().shape == (64, 8)
+    assert dist.log_prob(sample).shape == (64 * 8,)
+    assert dist.entropy().shape == (64 * 8,)
     flat = add_flat_action(batch.exclude(*keys.METADATA))[FLAT_ACTION]
-    assert flat.shape == (64, 8, 4)
+    assert flat.shape == (64 * 8, 4)
     forbidden = flat.clone()
     forbidden[..., 2] = 1.0
     assert (dist.log_prob(forbidden) < -1e6).all()  # zero probability

@@ -48,9 +48,9 @@ def masked_segment(spec, rows: int = 8, steps: int = 16):
     """Action 3 of the single branch is forbidden on every step; a few episode ends."""
     batch = segment(spec, rows, steps)
     batch[keys.ACTION_MASK][..., 3] = False
-    batch[keys.ACTION, keys.DISCRETE] = torch.randint(0, 3, (rows, steps, 1))
-    batch[keys.NEXT, keys.DONE][:, 5] = True
-    batch[keys.NEXT, keys.TERMINATED][:, 5] = True
+    batch[keys.ACTION, keys.DISCRETE] = torch.randint(0, 3, (rows * steps, 1))
+    batch[keys.NEXT, keys.DONE][5::steps] = True
+    batch[keys.NEXT, keys.TERMINATED][5::steps] = True
     return batch
 
 
@@ -103,16 +103,15 @@ def test_masked_actions_are_never_sampled_and_weigh_nothing_in_the_target():
     assert unmasked_next.any() and (after[unmasked_next] > before[unmasked_next]).all()
 
 
-def test_next_mask_is_the_next_steps_mask_within_the_episode():
-    mask = torch.zeros(1, 4, 2, dtype=torch.bool)
-    mask[0, :, 0] = True  # every step: action 1 forbidden
-    valid = torch.tensor([[True, True, True, False]])
-    done = torch.tensor([[False, True, False, False]]).unsqueeze(-1)
-    result = next_mask(mask, valid, done)
-    assert result[0, 0].tolist() == [True, False]  # step 1 follows in the same episode
-    assert result[0, 1].tolist() == [True, True]  # episode ended: no mask seen for it
-    assert result[0, 2].tolist() == [True, True]  # step 3 is padding
-    assert result[0, 3].tolist() == [True, True]  # row end
+def test_next_mask_is_the_next_steps_mask_within_the_trajectory():
+    mask = torch.zeros(4, 2, dtype=torch.bool)
+    mask[:, 0] = True  # every step: action 1 forbidden
+    done = torch.tensor([False, True, True, True]).unsqueeze(-1)  # episode end, a cut, end
+    result = next_mask(mask, done)
+    assert result[0].tolist() == [True, False]  # step 1 follows in the same trajectory
+    assert result[1].tolist() == [True, True]  # episode ended: no mask seen for it
+    assert result[2].tolist() == [True, True]  # cut at the horizon: the next is elsewhere
+    assert result[3].tolist() == [True, True]  # the segment's end
 
 
 @pytest.mark.parametrize(
@@ -200,7 +199,7 @@ def test_sac_learns_3dball_in_process(tmp_path):
     started, best, history = time.monotonic(), 0.0, []
     try:
         while time.monotonic() - started < 90 and best < 10:
-            version = learner.submit(collector.collect(min_rows=12))
+            version, _ = learner.submit(collector.collect(min_steps=768))
             if version > collector.version:
                 collector.load_weights(*learner.weights())
             stats = collector.snapshot().behaviors.get("3DBall?team=0")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from rollout import keys
 from rollout.collector import Collector
 from rollout.specs import step_spec
 from rollout.unity import UnityConfig
-from tests.helpers import leak_checked_allocator
+from tests.helpers import leak_checked_allocator, trajectories
 
 pytestmark = pytest.mark.integration
 
@@ -26,12 +27,9 @@ def allocator(tmp_path):
         yield allocator
 
 
-def check_echo_segment(segment, spec) -> int:
-    """Every valid transition is consistent with Echo's rules; returns their number."""
-    valid = segment[keys.VALID]
-    assert valid.any()
-    # Padding only after the last valid step of a row.
-    assert torch.equal(valid, valid.cummin(dim=1).values)
+def check_echo_segment(segment, spec, horizon: int) -> list[tuple[int, int, int, int]]:
+    """Every transition is consistent with Echo's rules; returns, per trajectory, (agent,
+    episode, its first step index, length)."""
     assert step_spec(spec).expand(*segment.batch_size).is_in(segment.exclude(*keys.METADATA))
     nxt = segment[keys.NEXT, keys.OBS, "Echo"]
     obs = segment[keys.OBS, "Echo"]
@@ -39,50 +37,69 @@ def check_echo_segment(segment, spec) -> int:
     action_d = segment[keys.ACTION, keys.DISCRETE]
     ids = segment[keys.AGENT_ID]
     # The next observation echoes the action sent to this agent (clipped, as Unity does).
-    torch.testing.assert_close(nxt[..., 3:5][valid], action_c.clamp(-1, 1)[valid])
-    assert torch.equal(nxt[..., 5:7][valid], action_d.float()[valid])
-    assert torch.equal(nxt[..., 0][valid], ids.float()[valid])
-    assert torch.equal(obs[..., 0][valid], ids.float()[valid])
-    reward = segment[keys.NEXT, keys.REWARD][..., 0]
-    torch.testing.assert_close(reward[valid], (0.01 * nxt[..., 2])[valid])
-    # Within an episode the next observation is the following step's observation.
-    done = segment[keys.NEXT, keys.DONE][..., 0]
-    follow = valid[:, 1:] & ~done[:, :-1]
-    assert torch.equal(nxt[:, :-1][follow], obs[:, 1:][follow])
+    torch.testing.assert_close(nxt[:, 3:5], action_c.clamp(-1, 1))
+    assert torch.equal(nxt[:, 5:7], action_d.float())
+    assert torch.equal(nxt[:, 0], ids.float()) and torch.equal(obs[:, 0], ids.float())
+    reward = segment[keys.NEXT, keys.REWARD][:, 0]
+    torch.testing.assert_close(reward, 0.01 * nxt[:, 2])
     # done = terminated xor truncated; terminated and truncated never both.
-    terminated = segment[keys.NEXT, keys.TERMINATED][..., 0]
-    truncated = segment[keys.NEXT, keys.TRUNCATED][..., 0]
+    done = segment[keys.NEXT, keys.DONE][:, 0]
+    terminated = segment[keys.NEXT, keys.TERMINATED][:, 0]
+    truncated = segment[keys.NEXT, keys.TRUNCATED][:, 0]
     assert torch.equal(done, terminated | truncated) and not (terminated & truncated).any()
     # Masked actions are never sampled: odd ids may not pick action 2 of branch 0.
     mask = segment[keys.ACTION_MASK]
-    picked = torch.gather(mask[..., :3], -1, action_d[..., :1])[..., 0]
-    assert picked[valid].all()
-    assert not (action_d[..., 0][valid & (ids % 2 == 1)] == 2).any()
-    return int(valid.sum())
+    picked = torch.gather(mask[:, :3], -1, action_d[:, :1])[:, 0]
+    assert picked.all()
+    assert not (action_d[:, 0][ids % 2 == 1] == 2).any()
+    found = []
+    for part in trajectories(segment):
+        agent, episode = ids[part], obs[part, 1]
+        assert (agent == agent[0]).all() and (episode == episode[0]).all()
+        # Within a trajectory the next observation is the following step's observation.
+        assert torch.equal(nxt[part][:-1], obs[part][1:])
+        length = part.stop - part.start
+        assert 1 <= length <= horizon
+        found.append((int(agent[0]), int(episode[0]), int(obs[part.start, 2]), length))
+    return found
 
 
-def test_echo_rows_are_exact_across_switches_arrivals_and_terminals(allocator):
+def test_echo_trajectories_are_exact_across_switches_arrivals_and_terminals(allocator):
+    horizon = 16
     collector = Collector(
         UnityConfig("unitysim:Echo", seed=4, num_areas=2),
         actor_factory,
-        horizon=16,
+        horizon=horizon,
         allocator=allocator,
     )
     try:
-        checked, padded, behaviors = 0, 0, set()
+        steps, behaviors, by_agent = 0, set(), {}
         for _ in range(40):
-            for segment in collector.collect():
+            for segment in collector.collect(min_steps=20):
                 behavior = segment.get_non_tensor(keys.BEHAVIOR)
                 behaviors.add(behavior)
                 spec = collector.unity.behavior_specs[behavior]
-                checked += check_echo_segment(segment, spec)
-                padded += int((~segment[keys.VALID]).any(dim=1).sum())
+                for found in check_echo_segment(segment, spec, horizon):
+                    by_agent.setdefault(found[0], []).append(found)
+                steps += segment.batch_size[0]
         metrics = collector.snapshot()
     finally:
         collector.close()
     assert behaviors == {"EchoA?team=0", "EchoB?team=0"}
-    assert checked > 500
-    assert padded > 0, "agents that left or switched behavior end with padded rows"
+    assert steps > 500
+    # An agent's trajectories tile each episode (in time order; an agent that switched
+    # behavior has its trajectories in two segments): every one that a later one of the
+    # same episode continues was cut at exactly the horizon; the others ended the episode.
+    cuts = ends = 0
+    for found in by_agent.values():
+        found.sort(key=lambda t: (t[1], t[2]))
+        for (_, episode, first, length), (_, next_episode, next_first, _) in pairwise(found):
+            if next_episode == episode:
+                assert length == horizon and next_first > first
+                cuts += 1
+            else:
+                ends += length < horizon
+    assert cuts > 0 and ends > 10
     assert sum(b.episodes for b in metrics.behaviors.values()) > 10
     assert metrics.dropped_steps == 0
 
@@ -105,32 +122,34 @@ def test_killed_player_restarts_and_no_partial_row_is_emitted(allocator):
         assert metrics.restarts == 1 and collector.unity.port != old_port
         assert metrics.dropped_steps > 0
         for segment in segments:  # rows mixing pre- and post-crash data would fail here
-            check_echo_segment(
-                segment, collector.unity.behavior_specs[segment.get_non_tensor(keys.BEHAVIOR)]
-            )
+            behavior = segment.get_non_tensor(keys.BEHAVIOR)
+            check_echo_segment(segment, collector.unity.behavior_specs[behavior], horizon=8)
     finally:
         collector.close()
 
 
-def test_3dball_rows_are_full_and_weights_versions_are_stamped(allocator):
+def test_3dball_rows_are_cut_at_the_horizon_and_weights_versions_are_stamped(allocator):
     collector = Collector(
         UnityConfig("unitysim:3DBall", seed=1), actor_factory, horizon=10, allocator=allocator
     )
     try:
-        first = collector.collect()
-        assert len(first) == 1 and first[0].batch_size == torch.Size([12, 10])
-        assert first[0][keys.VALID].all()
+        first = collector.collect(min_steps=1)
+        # 12 agents in step from the reset: the first rows are the 12 cut at 10 steps.
+        assert len(first) == 1 and first[0].batch_size == torch.Size([120])
+        assert [p.stop - p.start for p in trajectories(first[0])] == [10] * 12
+        assert first[0][keys.NEXT, keys.TRUNCATED][9::10].all()
         assert (first[0][keys.POLICY_VERSION] == 0).all()
         actor = collector.actors["3DBall?team=0"]
         new_state = {k: torch.zeros_like(v) for k, v in actor.state_dict().items()}
         collector.load_weights(3, {"3DBall?team=0": new_state})
         collector.load_weights(2, {"3DBall?team=0": actor.state_dict()})  # older: ignored
         assert all(torch.equal(v, torch.zeros_like(v)) for v in actor.state_dict().values())
-        # Rows acted on by version 3 only; at least 24 of them (480 samples): a single row
-        # (20 samples) is too few for the statistics below.
+        # Steps acted on by version 3 only; at least 480 of them: 20 are too few for the
+        # statistics below.
         fresh = []
-        while sum(segment.batch_size[0] for segment in fresh) < 24:
-            fresh += [s for s in collector.collect() if (s[keys.POLICY_VERSION] == 3).all()]
+        while sum(segment.batch_size[0] for segment in fresh) < 480:
+            for segment in collector.collect(min_steps=100):
+                fresh.append(segment[segment[keys.POLICY_VERSION] == 3])
         # Zero weights: the Gaussian mean is 0 and its std 1 for every agent.
         actions = torch.cat([s[keys.ACTION, keys.CONTINUOUS] for s in fresh])
         assert abs(float(actions.mean())) < 0.2 and 0.8 < float(actions.std()) < 1.2

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 
@@ -16,7 +17,7 @@ from rollout.specs import step_spec
 from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker
-from tests.helpers import wait_gone
+from tests.helpers import trajectories, wait_gone
 
 pytestmark = pytest.mark.integration
 PORTS = PortRange(24300, 24399)
@@ -65,10 +66,12 @@ def test_dungeon_escape_agents_come_and_go(ray_session, registry):
                 break
     finally:
         stop_worker(ray_session, worker)
-    ids = torch.cat([s[keys.AGENT_ID][s[keys.VALID]] for s in segments])
+    ids = torch.cat([s[keys.AGENT_ID] for s in segments])
     assert int(ids.max()) >= 36, "new agents appeared after the first 36"
-    assert any((~s[keys.VALID]).any() for s in segments), "departed agents end padded rows"
-    group_rewards = torch.cat([s[keys.NEXT, keys.GROUP_REWARD][s[keys.VALID]] for s in segments])
+    for segment in segments:  # departed agents' rows end at their terminal step, unpadded
+        for part in trajectories(segment):
+            assert (segment[keys.AGENT_ID][part] == segment[keys.AGENT_ID][part.start]).all()
+    group_rewards = torch.cat([s[keys.NEXT, keys.GROUP_REWARD] for s in segments])
     assert group_rewards.shape[0] == ids.shape[0]
 
 
@@ -81,13 +84,13 @@ def test_walljump_agents_switch_behaviors(ray_session, registry):
         stop_worker(ray_session, worker)
     by_behavior: dict[str, set[int]] = {}
     for segment in segments:
-        ids = set(segment[keys.AGENT_ID][segment[keys.VALID]].tolist())
+        ids = set(segment[keys.AGENT_ID].tolist())
         by_behavior.setdefault(segment.get_non_tensor(keys.BEHAVIOR), set()).update(ids)
     assert set(by_behavior) == {"SmallWallJump?team=0", "BigWallJump?team=0"}
     assert by_behavior["SmallWallJump?team=0"] & by_behavior["BigWallJump?team=0"], (
         "some agent id acted under both behaviors"
     )
-    done = sum(int(s[keys.NEXT, keys.DONE][s[keys.VALID]].sum()) for s in segments)
+    done = sum(int(s[keys.NEXT, keys.TERMINATED].sum()) for s in segments)
     assert done > 0, "the old behavior's trajectory ended before the switch"
     assert metrics.dropped_steps == 0
 
@@ -107,13 +110,12 @@ def test_soccer_two_behaviors_and_gridworld_masks(ray_session, registry):
     }
     masked_choices = 0
     for segment in grid_segments:
-        valid = segment[keys.VALID]
         image = segment[keys.OBS, "CameraSensor"]
-        assert image.shape[2:] == (3, 40, 40) or image.shape[2] == 3
+        assert image.shape[1:] == (3, 40, 40)
         action = segment[keys.ACTION, keys.DISCRETE][..., 0]
         allowed = segment[keys.ACTION_MASK]
-        assert torch.gather(allowed, -1, action.unsqueeze(-1))[..., 0][valid].all()
-        masked_choices += int((~allowed[valid]).sum())
+        assert torch.gather(allowed, -1, action.unsqueeze(-1))[..., 0].all()
+        masked_choices += int((~allowed).sum())
     assert masked_choices > 0, "walls masked some moves, and none of them was sampled"
 
 
@@ -157,8 +159,40 @@ def test_service_routes_segments_and_weights_and_survives_a_killed_worker(ray_se
         ray_session.kill(learner)
     assert summary["version"] >= 3
     assert len(summary["versions_seen"]) >= 3, "workers picked up newer weights"
-    assert summary["valid_steps"]["3DBall?team=0"] >= 3000
+    assert summary["steps"]["3DBall?team=0"] >= 3000
     assert metrics.policy_lag_count > 0 and metrics.policy_lag_max >= 0
+
+
+def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_session, registry):
+    """An on-policy learner wants 600 steps per version and "updates" for 2.5 s. Without
+    the demand gate, both workers would act with the old weights all that time (thousands
+    of steps); with it, the steps acted by any one version stay within the demand plus
+    what collects already under way and rows in progress can add."""
+    demand, horizon, workers = 600, 8, 2
+    learner = ray_session.remote(CountingLearner).remote(demand=demand, update_seconds=2.5)
+    config = ServiceConfig(
+        UnityConfig("unitysim:3DBall"),
+        num_workers=workers,
+        horizon=horizon,
+        worker_cpus=0.5,
+        port_range=PORTS,
+        registry_dir=registry,
+    )
+    with RolloutService(config, actor_factory, learner) as service:
+        service.run(until=lambda m: m.segments > 0, seconds=120)
+        service.run(seconds=12)
+        summary = ray_session.get(learner.summary.remote())
+    ray_session.kill(learner)
+    # A collect stops after the exchange that reaches its share (one exchange of 3DBall's
+    # 12 agents emits at most 12 rows of `horizon`), and rows in progress at a version
+    # change carry up to horizon - 1 steps per agent into the next version's count.
+    per_collect = math.ceil(demand / workers) + 12 * horizon
+    bound = demand + workers * per_collect + workers * 12 * (horizon - 1)
+    acted = {v: n for v, n in summary["versions_seen"].items() if v < summary["version"]}
+    assert len(acted) >= 3, summary
+    assert max(acted.values()) <= bound, (acted, bound)
+    # On average only the last exchange of each collect overshoots its share.
+    assert sum(acted.values()) / len(acted) <= demand + workers * 12 * horizon, acted
 
 
 def test_a_killed_worker_is_one_failure_however_long_ray_takes_to_restart_it(ray_session, registry):
