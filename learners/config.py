@@ -52,7 +52,9 @@ class Hyperparameters:
     learning_rate_schedule: str = "linear"  # "linear" | "constant"
     # PPO and IMPALA
     beta: float = 5.0e-3  # entropy coefficient
-    epsilon: float = 0.2  # PPO clip
+    epsilon: float = 0.2  # PPO clip (policy ratio and value change)
+    beta_schedule: str | None = None  # None: as learning_rate_schedule (ML-Agents' rule)
+    epsilon_schedule: str | None = None
     lambd: float = 0.95  # GAE lambda
     num_epoch: int = 3
     # SAC
@@ -188,7 +190,9 @@ SHARED: dict[str, Check] = {
 }
 _ON_POLICY: dict[str, Check] = {
     "beta": _float(0),
+    "beta_schedule": _choice(*SCHEDULES),
     "epsilon": POSITIVE,
+    "epsilon_schedule": _choice(*SCHEDULES),
     "lambd": _float(0, 1),
     "num_epoch": POSITIVE_INT,
 }
@@ -207,8 +211,8 @@ HYPER: dict[str, dict[str, Check]] = {
 # (not reported; ALWAYS: reported whatever the value)
 ALWAYS = object()
 HYPER_UNSUPPORTED: dict[str, dict[str, object]] = {
-    "ppo": {"beta_schedule": ALWAYS, "epsilon_schedule": ALWAYS, "shared_critic": False},
-    "impala": {"beta_schedule": ALWAYS, "epsilon_schedule": ALWAYS, "shared_critic": False},
+    "ppo": {"shared_critic": False},
+    "impala": {"shared_critic": False},
     "sac": {"save_replay_buffer": False, "reward_signal_steps_per_update": ALWAYS},
 }
 NETWORK: dict[str, Check] = {

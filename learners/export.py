@@ -5,9 +5,9 @@ axis dynamic, images NCHW as current ML-Agents writes them) and ``action_masks``
 float, 1 = allowed), and the outputs Unity's ``SentisModelParamLoader`` reads: the float
 constants ``version_number`` (3) and ``memory_size`` (0), the action-size constants, the
 stochastic actions sampled inside the graph (as ML-Agents does) and their deterministic
-twins. Continuous actions are clipped to [-1, 1] in the graph, the transform the collector
-applies before sending them to Unity, so the file acts as the policy did in training;
-squashed (SAC) policies emit ``tanh`` of the sample and ``tanh(mean)`` as deterministic
+twins. Continuous actions leave the graph as the collector sends them to Unity
+(``clamp(a, -3, 3) / 3``, as ML-Agents exports them), so the file acts as the policy did
+in training; squashed (SAC) policies emit ``tanh`` of the sample and ``tanh(mean)`` as deterministic
 action, with the state-dependent log-std of ``conditional_sigma`` networks.
 Also owns ``export_checkpoint`` (one ``.onnx`` per behavior) behind ``unity-rollout export``.
 Not owned: the networks (``learners.policies``), the checkpoint format
@@ -58,9 +58,9 @@ class _ExportedPolicy(nn.Module):
             if net.settings.tanh_squash:  # SAC policies: the action is tanh of the Gaussian
                 sample, mean = torch.tanh(sample), torch.tanh(mean)
             outputs += [
-                sample.clamp(-1.0, 1.0),
+                net.unity_action(sample),
                 self.continuous_shape.clone(),
-                mean.clamp(-1.0, 1.0),
+                net.unity_action(mean),
             ]
         if net.logits is not None:
             allowed = inputs[count]

@@ -30,7 +30,7 @@ from learners.onpolicy import (
     set_learning_rate,
 )
 from learners.policies import ActorCritic
-from learners.schedules import linear_decay
+from learners.schedules import decay
 from rollout import keys
 
 if TYPE_CHECKING:
@@ -72,13 +72,14 @@ class IMPALA:
         h = self.settings.hyperparameters
         with torch.no_grad():
             log_pi = self.actor.get_dist(rows).log_prob(rows[FLAT_ACTION]).unsqueeze(-1)
+            log_mu = rows[keys.LOG_PROB].sum(-1, keepdim=True)  # the acting policy's
             value = self.critic(rows.select(*obs_keys(self.network)))["state_value"]
             next_rows = rows[keys.NEXT].select(*obs_keys(self.network))
             next_value = self.critic(next_rows)["state_value"]
             advantage, target = vtrace_advantage_estimate(
                 self.settings.gamma,
                 log_pi,
-                rows[keys.LOG_PROB].unsqueeze(-1),
+                log_mu,
                 value,
                 next_value,
                 rows[keys.NEXT, keys.REWARD],
@@ -90,13 +91,13 @@ class IMPALA:
             )
         rows.set("advantage", advantage)
         rows.set("value_target", target)
-        rows.set("rho", (log_pi - rows[keys.LOG_PROB].unsqueeze(-1)).exp())
+        rows.set("rho", (log_pi - log_mu).exp())
         return rows
 
     def update(self, progress: float) -> dict[str, float]:
         h = self.settings.hyperparameters
         batch = self.buffer.take(self.network, self.settings.reward_strength)
-        lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
+        lr = decay(h.learning_rate, progress, h.learning_rate_schedule)
         set_learning_rate(self.optimizer, lr)
         totals: dict[str, float] = {}
         samples, rho_sum, value_sum = 0, 0.0, 0.0
@@ -106,7 +107,7 @@ class IMPALA:
                 if len(index) < 2:
                     continue
                 steps = batch[index]
-                gradient_step(self.loss, steps, self.optimizer, self.network, totals)
+                gradient_step(self.loss(steps), self.optimizer, totals, max_grad_norm=0.5)
                 samples += len(steps)
                 rho_sum += float(steps["rho"].sum())
                 value_sum += float(steps["value_target"].sum())

@@ -63,17 +63,24 @@ class ActionDistribution(Distribution):
         super().__init__(batch_shape=reference.shape[:-1], validate_args=False)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
-        total = torch.zeros(value.shape[:-1], dtype=value.dtype, device=value.device)
+        return self.log_prob_parts(value).sum(-1)
+
+    def log_prob_parts(self, value: torch.Tensor) -> torch.Tensor:
+        """One log-probability per action component ``[..., continuous + branches]``:
+        each continuous dimension, then each branch (their sum is ``log_prob``)."""
+        parts = []
         if self.normal is not None:
-            total = total + self.normal.log_prob(value[..., : self.continuous]).sum(-1)
+            parts.append(self.normal.log_prob(value[..., : self.continuous]))
         for index, dist in enumerate(self.categoricals):
-            total = total + dist.log_prob(value[..., self.continuous + index].long())
-        return total
+            parts.append(dist.log_prob(value[..., self.continuous + index].long()).unsqueeze(-1))
+        return torch.cat(parts, dim=-1)
 
     def entropy(self) -> torch.Tensor:
+        """ML-Agents' measure, which ``beta`` weighs: the Gaussian's mean entropy per
+        dimension, plus each branch's entropy."""
         total = torch.zeros(self.batch_shape)
         if self.normal is not None:
-            total = total + self.normal.entropy().sum(-1)
+            total = total + self.normal.entropy().mean(-1)
         for dist in self.categoricals:
             total = total + dist.entropy()
         return total

@@ -1,5 +1,5 @@
 """What PPO and IMPALA share: the buffer of segments waiting for the next update, and one
-gradient step on a torchrl loss.
+gradient step on a loss's entries.
 
 The buffer keeps whole packed segments (advantage estimators run along each trajectory,
 which ``done`` ends) and counts the steps that will train; ``take`` hands them over as one
@@ -9,9 +9,10 @@ extrinsic signal's strength, actions joined into the flat action the torchrl act
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torch import nn
 
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
@@ -38,11 +39,12 @@ class SegmentBuffer:
         return steps
 
     def ready(self) -> bool:
-        return self.steps >= self.buffer_size
+        """More than ``buffer_size`` steps, as ML-Agents' trainers wait for."""
+        return self.steps > self.buffer_size
 
     def wanted(self) -> int:
         """Steps still missing before the buffer is ready (at least 1)."""
-        return max(self.buffer_size - self.steps, 1)
+        return max(self.buffer_size + 1 - self.steps, 1)
 
     def take(self, network: ActorCritic, reward_strength: float) -> TensorDict:
         batch = torch.cat(self.segments, dim=0)
@@ -59,18 +61,18 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
 
 
 def gradient_step(
-    loss_module: nn.Module,
-    batch: TensorDictBase,
+    losses: TensorDictBase | Mapping[str, torch.Tensor],
     optimizer: torch.optim.Optimizer,
-    network: nn.Module,
     totals: dict[str, float],
+    max_grad_norm: float | None = None,
 ) -> None:
-    """Sum the ``loss_*`` entries, step, and add every entry's value to ``totals``."""
-    losses = loss_module(batch)
+    """Sum a loss's ``loss_*`` entries, step, and add every entry's value to ``totals``."""
     loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
     optimizer.zero_grad()
     loss.backward()
-    torch.nn.utils.clip_grad_norm_(network.parameters(), 0.5)
+    if max_grad_norm is not None:
+        params = [p for group in optimizer.param_groups for p in group["params"]]
+        torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
     optimizer.step()
     for key, value in losses.items():
         totals[key] = totals.get(key, 0.0) + float(value.detach().mean())

@@ -1,11 +1,14 @@
 """Actor-critic networks built from an ML-Agents ``BehaviorSpec``.
 
 One encoder per sensor (an MLP input for vectors, a small CNN for images and grids),
-concatenated into a shared MLP trunk; heads for continuous actions (a Gaussian whose raw
-sample is stored and clipped to [-1, 1] only when sent to Unity, as ML-Agents does), for
-each discrete branch (a masked categorical: masked actions have probability zero), and
-for the value. Plain torch: no Ray, so the learner side is testable in-process; the
-rollout workers get a CPU copy through ``actor_factory``.
+concatenated into MLP trunks (policy and value apart) with ML-Agents' layers: Swish
+activations and its initializations (trunk weights ``kaiming_normal`` for a linear
+layer, the Gaussian mean head at gain 0.2, discrete heads at 0.1, the value head
+Xavier-uniform, log-std 0). Heads for continuous actions (a Gaussian whose raw sample is
+stored; Unity receives ``clamp(a, -3, 3) / 3``, as from mlagents-learn), for each discrete
+branch (a masked categorical: masked actions have probability zero), and for the value.
+Plain torch: no Ray, so the learner side is testable in-process; the rollout workers get
+a CPU copy through ``actor_factory``.
 
 SAC networks (as ML-Agents builds them) set ``tanh_squash``: the action sent and stored is
 ``tanh(u)`` of the Gaussian sample ``u``, its log-probability carries the tanh Jacobian
@@ -29,6 +32,7 @@ from torchrl.modules import MaskedCategorical
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # conditional_sigma clamp (ML-Agents' range)
+ACTION_CLIP = 3.0  # unsquashed samples reach Unity as clamp(a, -3, 3) / 3 (ML-Agents)
 SQUASH_EPS = 1e-6  # stored squashed actions are clamped to +-(1 - eps) before atanh
 
 
@@ -130,10 +134,25 @@ def _is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
     )
 
 
+def linear(width: int, out: int, gain: float = 1.0, xavier: bool = False) -> nn.Linear:
+    """A linear layer initialized as ML-Agents' ``linear_layer``: zero bias, weights from
+    ``kaiming_normal`` for a linear layer (std 1/sqrt(fan in)) or ``xavier_uniform``,
+    times ``gain``."""
+    layer = nn.Linear(width, out)
+    with torch.no_grad():
+        if xavier:
+            nn.init.xavier_uniform_(layer.weight)
+        else:
+            nn.init.kaiming_normal_(layer.weight, nonlinearity="linear")
+        layer.weight.mul_(gain)
+        layer.bias.zero_()
+    return layer
+
+
 def _mlp(width: int, settings: NetworkSettings) -> nn.Sequential:
     layers: list[nn.Module] = []
     for _ in range(settings.num_layers):
-        layers += [nn.Linear(width, settings.hidden_units), nn.Tanh()]
+        layers += [linear(width, settings.hidden_units), nn.SiLU()]
         width = settings.hidden_units
     return nn.Sequential(*layers)
 
@@ -160,21 +179,16 @@ class ActorCritic(nn.Module):
         width = settings.hidden_units if settings.num_layers else encoded
         self.continuous = spec.action_spec.continuous_size
         self.branches = tuple(spec.action_spec.discrete_branches)
-        self.mean = nn.Linear(width, self.continuous) if self.continuous else None
+        self.mean = linear(width, self.continuous, gain=0.2) if self.continuous else None
         conditional = bool(self.continuous) and settings.conditional_sigma
         self.log_std = (
             nn.Parameter(torch.zeros(self.continuous))
             if self.continuous and not conditional
             else None
         )
-        self.log_std_head = nn.Linear(width, self.continuous) if conditional else None
-        self.logits = nn.Linear(width, sum(self.branches)) if self.branches else None
-        self.value = nn.Linear(width, 1)
-        # near-uniform first policy (log-std ~ 0 too): small output layers
-        for head in (self.mean, self.logits, self.log_std_head):
-            if head is not None:
-                nn.init.orthogonal_(head.weight, gain=0.01)
-                nn.init.zeros_(head.bias)
+        self.log_std_head = linear(width, self.continuous, gain=0.2) if conditional else None
+        self.logits = linear(width, sum(self.branches), gain=0.1) if self.branches else None
+        self.value = linear(width, 1, xavier=True)
 
     def update_normalization(self, obs: dict[str, torch.Tensor]) -> None:
         """Fold observations the learner trains on into the running statistics."""
@@ -197,6 +211,12 @@ class ActorCritic(nn.Module):
     def state_value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """V(obs) with the batch dims kept (no trailing 1)."""
         return self.value(self.critic_trunk(self.encode(obs))).squeeze(-1)
+
+    def unity_action(self, continuous: torch.Tensor) -> torch.Tensor:
+        """The continuous action Unity receives for a stored one (squashed: as it is)."""
+        if self.settings.tanh_squash:
+            return continuous
+        return continuous.clamp(-ACTION_CLIP, ACTION_CLIP) / ACTION_CLIP
 
     def mean_log_std(self, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The Gaussian's mean and log-std (before any tanh squash) for a trunk output."""
@@ -238,10 +258,11 @@ class ActorCritic(nn.Module):
         mask: torch.Tensor | None = None,
         deterministic: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(continuous [n, c], discrete [n, branches] int64, log-prob [n]) for a batch."""
+        """(continuous [n, c], discrete [n, branches] int64, log-probs [n, c + branches])
+        for a batch: one log-probability per action component (``LOG_PROB``)."""
         hidden = self.features(obs)
         n = hidden.shape[0]
-        log_prob = torch.zeros(n)
+        log_probs = [torch.zeros(n, 0)]
         continuous = torch.zeros(n, 0)
         if self.mean is not None:
             # The Gaussian by hand: on the acting hot path, Distribution objects cost more
@@ -249,10 +270,11 @@ class ActorCritic(nn.Module):
             mean, log_std = self.mean_log_std(hidden)
             noise = torch.zeros_like(mean) if deterministic else torch.randn_like(mean)
             continuous = mean + noise * log_std.exp()
-            log_prob = (-0.5 * noise.square() - log_std - _HALF_LOG_2PI).sum(-1)
+            gaussian = -0.5 * noise.square() - log_std - _HALF_LOG_2PI
             if self.settings.tanh_squash:  # log p(tanh u) = log p(u) - log|d tanh/du|
-                log_prob = log_prob - tanh_log_det(continuous).sum(-1)
+                gaussian = gaussian - tanh_log_det(continuous)
                 continuous = torch.tanh(continuous)
+            log_probs.append(gaussian)
         discrete = torch.zeros(n, 0, dtype=torch.int64)
         if self.logits is not None:
             # Gumbel-max sampling per branch over masked log-softmax logits: the same law
@@ -268,10 +290,10 @@ class ActorCritic(nn.Module):
                 if not deterministic:
                     scores = branch_logp - torch.empty_like(branch_logp).exponential_().log()
                 pick = scores.argmax(-1)
-                log_prob = log_prob + branch_logp.gather(-1, pick.unsqueeze(-1)).squeeze(-1)
+                log_probs.append(branch_logp.gather(-1, pick.unsqueeze(-1)))
                 picks.append(pick)
             discrete = torch.stack(picks, dim=-1)
-        return continuous, discrete, log_prob
+        return continuous, discrete, torch.cat(log_probs, dim=-1)
 
     def evaluate(
         self,
@@ -280,26 +302,27 @@ class ActorCritic(nn.Module):
         discrete: torch.Tensor | None,
         mask: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(log-prob, entropy, value) of given actions; batch dims are kept."""
+        """(log-probs [..., c + branches] as ``act`` gives them, entropy, value) of given
+        actions; batch dims are kept."""
         hidden = self.features(obs)
         normal, branches = self.distributions(hidden, mask)
         lead = hidden.shape[:-1]
-        log_prob, entropy = torch.zeros(lead), torch.zeros(lead)
+        log_probs, entropy = [torch.zeros(*lead, 0)], torch.zeros(lead)
         if normal is not None and continuous is not None:
             if self.settings.tanh_squash:  # invert the squash on the stored tanh(u)
                 bound = 1.0 - SQUASH_EPS
                 u = torch.atanh(continuous.clamp(-bound, bound))
-                log_prob = log_prob + (normal.log_prob(u) - tanh_log_det(u)).sum(-1)
+                log_probs.append(normal.log_prob(u) - tanh_log_det(u))
             else:
-                log_prob = log_prob + normal.log_prob(continuous).sum(-1)
+                log_probs.append(normal.log_prob(continuous))
             # squashed: the pre-squash Gaussian's entropy (no closed form after tanh;
             # ML-Agents reports the same)
             entropy = entropy + normal.entropy().sum(-1)
         for index, dist in enumerate(branches):
             assert discrete is not None
-            log_prob = log_prob + dist.log_prob(discrete[..., index])
+            log_probs.append(dist.log_prob(discrete[..., index]).unsqueeze(-1))
             entropy = entropy + dist.entropy()
-        return log_prob, entropy, self.state_value(obs)
+        return torch.cat(log_probs, dim=-1), entropy, self.state_value(obs)
 
 
 class RolloutActor:
@@ -324,6 +347,12 @@ class RolloutActor:
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         self.network.load_state_dict(state)
         self._refresh()
+
+    def to_unity(self, continuous: np.ndarray) -> np.ndarray:
+        """The continuous action Unity receives (``ActorCritic.unity_action`` in numpy)."""
+        if self.network.settings.tanh_squash:
+            return continuous
+        return np.clip(continuous, -ACTION_CLIP, ACTION_CLIP) / ACTION_CLIP
 
     def _refresh(self) -> None:
         net = self.network
@@ -357,7 +386,8 @@ class RolloutActor:
     def act(
         self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(continuous [n, c] float32, discrete [n, branches] int64, log-prob [n] float32)."""
+        """(continuous [n, c] float32, discrete [n, branches] int64, log-probs
+        [n, c + branches] float32), as ``ActorCritic.act``."""
         if self._layers is None:
             tensors = {name: torch.from_numpy(value) for name, value in obs.items()}
             torch_mask = torch.from_numpy(mask) if mask is not None else None
@@ -373,8 +403,9 @@ class RolloutActor:
             parts.append(part)
         hidden = np.concatenate(parts, axis=1)
         for weight, bias in self._layers:
-            hidden = np.tanh(hidden @ weight + bias)
-        log_prob = np.zeros(n, np.float32)
+            hidden = hidden @ weight + bias
+            hidden *= 0.5 * (1.0 + np.tanh(0.5 * hidden))  # Swish: x sigmoid(x), no overflow
+        log_probs = [np.zeros((n, 0), np.float32)]
         continuous = np.zeros((n, 0), np.float32)
         if self._mean is not None:
             mean = hidden @ self._mean[0] + self._mean[1]
@@ -386,11 +417,11 @@ class RolloutActor:
                 log_std = self._log_std
             noise = self.rng.standard_normal(mean.shape, dtype=np.float32)
             continuous = mean + noise * np.exp(log_std)
-            log_prob += (-0.5 * noise * noise - log_std - _HALF_LOG_2PI).sum(-1)
+            gaussian = -0.5 * noise * noise - log_std - _HALF_LOG_2PI
             if net.settings.tanh_squash:  # as ActorCritic.act: Jacobian, then squash
-                log_det = 2.0 * (_LOG_2 - continuous - np.logaddexp(0.0, -2.0 * continuous))
-                log_prob -= log_det.sum(-1)
+                gaussian -= 2.0 * (_LOG_2 - continuous - np.logaddexp(0.0, -2.0 * continuous))
                 continuous = np.tanh(continuous)
+            log_probs.append(gaussian)
         discrete = np.zeros((n, 0), np.int64)
         if self._logits is not None:
             logits = hidden @ self._logits[0] + self._logits[1]
@@ -404,10 +435,11 @@ class RolloutActor:
                 branch_logp -= np.log(np.exp(branch_logp).sum(-1, keepdims=True))
                 gumbel = -np.log(self.rng.exponential(size=branch.shape))
                 pick = (branch_logp + gumbel).argmax(-1)
-                log_prob += branch_logp[np.arange(n), pick]
+                log_probs.append(branch_logp[np.arange(n), pick, None])
                 picks.append(pick)
             discrete = np.stack(picks, axis=-1).astype(np.int64)
-        return continuous.astype(np.float32), discrete, log_prob.astype(np.float32)
+        log_prob = np.concatenate(log_probs, axis=1).astype(np.float32)
+        return continuous.astype(np.float32), discrete, log_prob
 
 
 def base_name(behavior: str) -> str:

@@ -1,11 +1,20 @@
-"""PPO for one behavior, on torchrl pieces: ``ClipPPOLoss`` and ``GAE``.
+"""PPO for one behavior, as mlagents-learn runs it, on torchrl's ``GAE``.
 
-Reads top to bottom like one iteration of the algorithm: segments arrive (``add``) and
-wait in a buffer until ``buffer_size`` valid steps are there; ``update`` folds their
-observations into the running normalization, computes GAE advantages on the ``[B, T]``
-rows (torchrl's estimator, which stops at ``done`` and bootstraps from the next
-observation unless ``terminated``), flattens the valid steps, and runs ``num_epoch``
-passes of shuffled minibatches through the clipped surrogate.
+Reads top to bottom like one iteration of the algorithm, as mlagents-learn runs it:
+segments arrive (``add``) and wait in a buffer until more than ``buffer_size`` steps are
+there; ``update`` folds their observations into the running normalization, computes GAE
+advantages along each packed trajectory (torchrl's estimator, which stops at ``done``
+and bootstraps from the next observation unless ``terminated``), normalizes the
+advantages over the whole buffer, and runs ``num_epoch`` passes of shuffled minibatches
+of ``batch_size`` (the remainder left out) through ``loss``. Learning rate, epsilon (both
+clips) and beta decay linearly over ``max_steps`` to 1e-10, 0.1 and 1e-5, as ML-Agents'
+do (``*_schedule: constant`` keeps them). No gradient clipping, as in ML-Agents.
+
+The loss is ML-Agents', written out rather than torchrl's ``ClipPPOLoss``, because
+``epsilon`` means something else there: ML-Agents clips the probability ratio of each
+action component (each continuous dimension, each discrete branch) on its own and
+averages the clipped surrogates; ``ClipPPOLoss`` clips the ratio of the joint action.
+The value loss is clipped by the same epsilon around the estimate the update started from.
 
 Policy lag: workers act with slightly old weights. The surrogate's ratio is taken
 against the log-probability stored with each step (the policy that really acted), which
@@ -19,10 +28,9 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDict
-from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from learners.modules import FLAT_ACTION, probabilistic_actor, value_operator
+from learners.modules import FLAT_ACTION, obs_keys, probabilistic_actor, value_operator
 from learners.onpolicy import (
     TRAIN,
     SegmentBuffer,
@@ -32,7 +40,7 @@ from learners.onpolicy import (
     set_learning_rate,
 )
 from learners.policies import ActorCritic
-from learners.schedules import linear_decay
+from learners.schedules import BETA_END, EPSILON_END, decay
 from rollout import keys
 
 if TYPE_CHECKING:
@@ -43,20 +51,9 @@ class PPO:
     def __init__(self, network: ActorCritic, settings: TrainerSettings) -> None:
         self.network, self.settings = network, settings
         h = settings.hyperparameters
-        actor, critic = probabilistic_actor(network), value_operator(network)
-        self.loss = ClipPPOLoss(
-            actor,
-            critic,
-            clip_epsilon=h.epsilon,
-            entropy_coeff=h.beta,
-            critic_coeff=0.5,
-            loss_critic_type="l2",
-            normalize_advantage=True,
-            functional=False,  # actor and critic share encoders: use the modules as they are
-        )
-        self.loss.set_keys(action=FLAT_ACTION, sample_log_prob=keys.LOG_PROB)
+        self.actor, self.critic = probabilistic_actor(network), value_operator(network)
         self.advantage = GAE(
-            gamma=settings.gamma, lmbda=h.lambd, value_network=critic, average_gae=False
+            gamma=settings.gamma, lmbda=h.lambd, value_network=self.critic, average_gae=False
         )
         self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate)
         self.buffer = SegmentBuffer(h.buffer_size)
@@ -65,8 +62,8 @@ class PPO:
     # --- data in ------------------------------------------------------------------------
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
-        """Buffer a ``[B, T]`` segment (``lag``: per step, updates of this behavior since
-        the weights that acted); returns the steps that will count in the loss."""
+        """Buffer a packed segment (``lag``: per step, updates of this behavior since the
+        weights that acted); returns the steps that will count in the loss."""
         fresh = lag <= self.settings.hyperparameters.max_policy_lag
         self.stale_steps += int((~fresh).sum())
         return self.buffer.add(segment, keep=fresh)
@@ -86,23 +83,53 @@ class PPO:
         with torch.no_grad():
             self.advantage(batch)
         steps = batch[batch[TRAIN]]  # the steps that train, each with advantage and target
+        advantage = steps["advantage"]
+        steps["advantage"] = (advantage - advantage.mean()) / (advantage.std() + 1e-10)
 
-        lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
+        schedule = h.learning_rate_schedule
+        lr = decay(h.learning_rate, progress, schedule)
+        epsilon = decay(h.epsilon, progress, h.epsilon_schedule or schedule, EPSILON_END)
+        beta = decay(h.beta, progress, h.beta_schedule or schedule, BETA_END)
         set_learning_rate(self.optimizer, lr)
         totals: dict[str, float] = {}
         for _ in range(h.num_epoch):
             for index in torch.randperm(len(steps)).split(h.batch_size):
-                if len(index) > 1:
-                    gradient_step(self.loss, steps[index], self.optimizer, self.network, totals)
+                if len(index) == h.batch_size:
+                    losses = self.loss(steps[index], epsilon, beta)
+                    gradient_step(losses, self.optimizer, totals)
         mean = means(totals)
         return {
-            **actor_critic_report(mean, lr, h.beta),
-            "Policy/Epsilon": h.epsilon,
+            **actor_critic_report(mean, lr, beta),
+            "Policy/Epsilon": epsilon,
             "Policy/Clip Fraction": mean.get("clip_fraction", 0.0),
             "Policy/Approx KL": mean.get("kl_approx", 0.0),
             "Policy/Extrinsic Value Estimate": float(steps["state_value"].mean()),
             "Policy/Stale Steps Dropped": float(self.stale_steps),
             "Policy/Samples": float(len(steps)),
+        }
+
+    def loss(self, steps: TensorDict, epsilon: float, beta: float) -> dict[str, torch.Tensor]:
+        """ML-Agents' PPO loss on a minibatch: per-component clipped surrogate, clipped
+        value loss (weight 0.5), entropy bonus (weight ``beta``)."""
+        dist = self.actor.get_dist(steps)
+        log_ratio = dist.log_prob_parts(steps[FLAT_ACTION]) - steps[keys.LOG_PROB]
+        ratio = log_ratio.exp()  # [B, components]
+        advantage = steps["advantage"]  # [B, 1]
+        surrogate = torch.min(ratio * advantage, ratio.clamp(1 - epsilon, 1 + epsilon) * advantage)
+
+        value = self.critic(steps.select(*obs_keys(self.network)))["state_value"]
+        old, target = steps["state_value"], steps["value_target"]
+        clipped = old + (value - old).clamp(-epsilon, epsilon)
+        value_loss = torch.max((target - value).square(), (target - clipped).square())
+
+        entropy = dist.entropy().mean()
+        return {
+            "loss_objective": -surrogate.mean(),
+            "loss_critic": 0.5 * value_loss.mean(),
+            "loss_entropy": -beta * entropy,
+            "entropy": entropy.detach(),
+            "clip_fraction": ((ratio - 1.0).abs() > epsilon).float().mean(),
+            "kl_approx": -log_ratio.detach().mean(),
         }
 
     # --- checkpoints --------------------------------------------------------------------

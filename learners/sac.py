@@ -33,7 +33,7 @@ from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate
 
 from learners.modules import PolicyParams, obs_keys
 from learners.policies import ActorCritic, SensorEncoder
-from learners.schedules import linear_decay
+from learners.schedules import decay
 from rollout import keys
 
 if TYPE_CHECKING:
@@ -249,7 +249,7 @@ class SAC:
         self.new_steps -= owed * h.steps_per_update
         count = min(owed, MAX_GRADIENT_STEPS)
         self.dropped_gradient_steps += owed - count
-        lr = linear_decay(h.learning_rate, progress, h.learning_rate_schedule)
+        lr = decay(h.learning_rate, progress, h.learning_rate_schedule)
         for optimizer in self.optimizers:
             for group in optimizer.param_groups:
                 group["lr"] = lr

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+LR_END, EPSILON_END, BETA_END = 1e-10, 0.1, 1e-5  # where ML-Agents' linear schedules end
 
-def linear_decay(value: float, progress: float, schedule: str, floor: float = 1e-10) -> float:
-    """``linear``: from ``value`` at the start to ``floor`` at ``max_steps``; ``constant``."""
+
+def decay(value: float, progress: float, schedule: str, end: float = LR_END) -> float:
+    """``linear``: from ``value`` at the start to ``end`` at ``max_steps`` (progress 1),
+    as ML-Agents' ``DecayedValue``; ``constant``: ``value`` throughout."""
     if schedule == "constant":
         return value
-    return max(value * (1.0 - min(max(progress, 0.0), 1.0)), floor)
+    progress = min(max(progress, 0.0), 1.0)
+    return (value - end) * (1.0 - progress) + end

@@ -68,7 +68,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         max_seconds=args.max_seconds,
         cpus=args.cpus,
         address=args.address,
-        progress=not args.no_progress,
+        progress=not args.no_progress and sys.stdout.isatty(),
         num_areas=args.num_areas,
     )
     try:
@@ -111,6 +111,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from learners.policies import actor_factory
     from rollout.service import RolloutService, ServiceConfig
     from rollout.testing import CountingLearner
+    from rollout.train import init_local_ray
     from rollout.unity import UnityConfig, UnityError, resolve_build
 
     console = Console()
@@ -123,7 +124,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     if args.address:
         ray.init(address=args.address)
     else:
-        ray.init(num_cpus=args.cpus, include_dashboard=False, log_to_driver=False)
+        init_local_ray(args.cpus)
     try:
         learner = ray.remote(CountingLearner).options(num_cpus=0).remote()
         config = ServiceConfig(
@@ -205,7 +206,11 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--num-areas", type=int, default=1, help="training areas per Unity")
     train.add_argument("--cpus", type=int, default=2, help="local mode: ray.init(num_cpus)")
     train.add_argument("--address", help="join an existing Ray cluster (e.g. auto in a job)")
-    train.add_argument("--no-progress", action="store_true", help="no live display")
+    train.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no live display: one line per summary (also when output is not a terminal)",
+    )
     train.set_defaults(func=_cmd_train)
 
     collect = commands.add_parser(

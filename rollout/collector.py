@@ -35,11 +35,14 @@ log = logging.getLogger(__name__)
 class Actor(Protocol):
     """What a worker needs of a policy (``learners.policies.RolloutActor`` is one): numpy
     observations per sensor and an allowed-mask in; continuous [n, c], discrete
-    [n, branches] and log-probabilities [n] out."""
+    [n, branches] and log-probabilities [n] out; and the continuous action Unity gets for
+    a chosen one (the policy's convention: ML-Agents' scale the Gaussian's sample)."""
 
     def act(
         self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def to_unity(self, continuous: np.ndarray) -> np.ndarray: ...
 
     def load_state_dict(self, state: Mapping[str, Any]) -> Any: ...
 
@@ -68,6 +71,7 @@ class CollectorMetrics:
     behaviors: dict[str, BehaviorStats] = field(default_factory=dict)
     unity_stats: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
     seconds: float = 0.0
+    first_step_at: float | None = None  # wall clock (time.time) of Unity's first answer
 
 
 class Collector:
@@ -95,6 +99,8 @@ class Collector:
     def start(self) -> None:
         self.unity.start()
         self.unity.reset()
+        if self.metrics.first_step_at is None:
+            self.metrics.first_step_at = time.time()
         self._started = True
 
     def close(self) -> None:
@@ -168,12 +174,11 @@ class Collector:
         obs = {o.name: v for o, v in zip(spec.observation_specs, decisions.obs, strict=True)}
         branches = spec.action_spec.discrete_branches
         mask = allowed_mask(decisions, sum(branches)) if branches else None
-        continuous, discrete, log_prob = self.actors[behavior].act(obs, mask)
+        actor = self.actors[behavior]
+        continuous, discrete, log_prob = actor.act(obs, mask)
         self.unity.set_actions(
             behavior,
-            ActionTuple(
-                continuous=np.clip(continuous, -1.0, 1.0), discrete=discrete.astype(np.int32)
-            ),
+            ActionTuple(continuous=actor.to_unity(continuous), discrete=discrete.astype(np.int32)),
         )
         return Decisions(continuous, discrete, log_prob)
 

@@ -12,7 +12,9 @@ ACTION = "action"  # ("action", CONTINUOUS) float32 [c]; ("action", DISCRETE) in
 CONTINUOUS = "continuous"
 DISCRETE = "discrete"
 ACTION_MASK = "action_mask"  # bool [sum(branches)], True = allowed; discrete behaviors only
-LOG_PROB = "sample_log_prob"  # float32: log-probability of the action under the acting policy
+# float32 [continuous + branches]: log-probability of each action component (each
+# continuous dimension, then each branch) under the acting policy; the action's is their sum
+LOG_PROB = "sample_log_prob"
 POLICY_VERSION = "policy_version"  # int64: version of the weights that chose the action
 AGENT_ID = "agent_id"  # int64: Unity's agent id (unique within a behavior)
 GROUP_ID = "group_id"  # int64: multi-agent group, 0 = none

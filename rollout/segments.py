@@ -39,7 +39,7 @@ class Decisions:
 
     continuous: np.ndarray  # float32 (n, continuous size)
     discrete: np.ndarray  # int64 (n, branches)
-    log_prob: np.ndarray  # float32 (n,)
+    log_prob: np.ndarray  # float32 (n, continuous size + branches): one per component
 
 
 @dataclass
@@ -89,7 +89,7 @@ class SegmentBuilder:
             "cont": np.zeros((s, t, self._continuous), np.float32),
             "disc": np.zeros((s, t, self._branches), np.int64),
             "mask": np.ones((s, t, self._mask_size), np.bool_),
-            "logp": np.zeros((s, t), np.float32),
+            "logp": np.zeros((s, t, self._continuous + self._branches), np.float32),
             "version": np.zeros((s, t), np.int64),
             "group": np.zeros((s, t), np.int64),
             "reward": np.zeros((s, t), np.float32),
@@ -100,7 +100,7 @@ class SegmentBuilder:
             "p_cont": np.zeros((s, self._continuous), np.float32),
             "p_disc": np.zeros((s, self._branches), np.int64),
             "p_mask": np.ones((s, self._mask_size), np.bool_),
-            "p_logp": np.zeros(s, np.float32),
+            "p_logp": np.zeros((s, self._continuous + self._branches), np.float32),
             "p_version": np.zeros(s, np.int64),
             "p_group": np.zeros(s, np.int64),
             "length": np.zeros(s, np.int64),

@@ -150,11 +150,12 @@ class RolloutService:
 
     def start(self) -> None:
         self._started = time.perf_counter()
+        # Workers first: their processes and Unity players start while the learner's does.
+        self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
         # A resumed learner already has trained weights: workers start from them.
         self._weights_ref = self.learner.weights.remote()
         self._version = int(ray.get(self._weights_ref)[0])
         self._wanted = ray.get(self.learner.submit.remote([]))[1]
-        self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
         self._worker_version = [0] * len(self.workers)
         self._failures = [0] * len(self.workers)
         self._restarting.clear()

@@ -41,6 +41,12 @@ def action_spec(spec: BehaviorSpec) -> Composite:
     return Composite(parts)
 
 
+def log_prob_size(spec: BehaviorSpec) -> int:
+    """Log-probabilities per step: one per continuous dimension and per discrete branch,
+    as ML-Agents keeps them (its PPO clips each component's ratio)."""
+    return spec.action_spec.continuous_size + len(spec.action_spec.discrete_branches)
+
+
 def step_spec(spec: BehaviorSpec) -> Composite:
     """One step of a segment: what the worker records per decision and its outcome."""
     scalar_float = Unbounded((1,), dtype=torch.float32)
@@ -48,7 +54,7 @@ def step_spec(spec: BehaviorSpec) -> Composite:
     entries = {
         keys.OBS: observation_spec(spec),
         keys.ACTION: action_spec(spec),
-        keys.LOG_PROB: Unbounded((), dtype=torch.float32),
+        keys.LOG_PROB: Unbounded((log_prob_size(spec),), dtype=torch.float32),
         keys.POLICY_VERSION: Unbounded((), dtype=torch.int64),
         keys.AGENT_ID: Unbounded((), dtype=torch.int64),
         keys.GROUP_ID: Unbounded((), dtype=torch.int64),

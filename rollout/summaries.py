@@ -8,7 +8,8 @@ Tags (docs/training.md lists them all): ``Environment/Cumulative Reward`` and
 ``Health/*`` (Unity restarts, dropped steps, policy lag) and ``Perf/*`` (agent steps per
 second collected, samples per second consumed by the learner). One writer per behavior,
 in ``<run dir>/<behavior>/``, as ML-Agents lays them out, so TensorBoard shows one run per
-behavior.
+behavior. Without the live display (``--no-progress``, or output that is not a terminal)
+each summary is also one line on the console, in mlagents-learn's words.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ class Summaries:
         self.live = Live(console=self.console, auto_refresh=False) if progress else None
         self.started = time.perf_counter()
         self.rates: dict[str, float] = {}
+        self.first_reward_at: float | None = None  # wall clock of the first mean reward
         self._last_rate = (self.started, 0, 0, 0.0)
 
     def __enter__(self) -> Summaries:
@@ -143,6 +145,16 @@ class Summaries:
                 writer.add_scalar("Environment/Cumulative Reward", window.last_reward, step)
                 writer.add_scalar("Environment/Episode Length", window.last_length, step)
                 writer.add_scalar("Environment/Episodes", new, step)
+                self.first_reward_at = self.first_reward_at or time.time()
+                if self.live is None:
+                    self.console.print(
+                        f"{behavior}. Step: {step}. "
+                        f"Time Elapsed: {time.perf_counter() - self.started:.1f} s. "
+                        f"Mean Reward: {window.last_reward:.3f}. "
+                        f"Episode Length: {window.last_length:.1f}.",
+                        soft_wrap=True,
+                        highlight=False,
+                    )
             window.episodes, window.return_sum, window.length_sum = totals
         for key, values in window.losses.items():
             writer.add_scalar(key, sum(values) / len(values), step)

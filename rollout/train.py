@@ -23,6 +23,7 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
+import psutil
 import ray
 import yaml
 
@@ -67,6 +68,19 @@ class TrainResult:
     checkpoint: Path
     interrupted: bool
     latest: dict[str, dict[str, float | None]]
+
+
+def init_local_ray(cpus: int) -> None:
+    """Local mode's Ray: no dashboard, and workers (with the Unity players they start) at
+    the priority of the command that launched them; Ray's default, niceness 15, would hand
+    their CPU to every other process on a shared machine. On a cluster the operator sets
+    it at ``ray start`` (``RAY_worker_niceness``; deploy/README.md)."""
+    ray.init(
+        num_cpus=cpus,
+        include_dashboard=False,
+        log_to_driver=False,
+        _system_config={"worker_niceness": 0},
+    )
 
 
 def load_run_config(options: TrainOptions) -> RunConfig:
@@ -189,11 +203,7 @@ def train(options: TrainOptions) -> TrainResult:
         if options.address:
             ray.init(address=options.address, log_to_driver=False)
         else:
-            ray.init(
-                num_cpus=options.cpus,
-                include_dashboard=False,
-                log_to_driver=False,
-            )
+            init_local_ray(options.cpus)
         started_ray = True
     try:
         return _run(options, config, unity, run_dir, resume)
@@ -242,6 +252,7 @@ def _run(
                 break
         final = checkpoints.save(ray.get(learner.state_dict.remote()), meta)
         latest = summaries.latest()
+        startup = _startup(_first_steps(service), summaries.first_reward_at)
     result = TrainResult(
         run_dir,
         dict(progress["steps"]),
@@ -263,11 +274,31 @@ def _run(
                 "seconds": round(result.seconds, 1),
                 "checkpoint": str(final),
                 "interrupted": received[0] if received else None,
+                "startup": startup,
             },
             indent=2,
         )
     )
     return result
+
+
+def _first_steps(service: RolloutService) -> list[float]:
+    """When each worker's Unity first answered (wall clock), as far as reported."""
+    return [w.first_step_at for w in service.metrics.workers if w.first_step_at is not None]
+
+
+def _startup(first_steps: list[float], first_reward_at: float | None) -> dict[str, float | None]:
+    """Seconds from this process's start to the first environment step and the first
+    summary with a mean reward (what a user waits for before anything happens)."""
+    launched = psutil.Process().create_time()
+
+    def since(at: float | None) -> float | None:
+        return None if at is None else round(at - launched, 2)
+
+    return {
+        "first_step_s": since(min(first_steps, default=None)),
+        "first_summary_s": since(first_reward_at),
+    }
 
 
 def _plain(value: Any) -> Any:

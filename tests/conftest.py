@@ -80,7 +80,9 @@ def ray_session():
     """One local Ray for the whole session (it takes ~6 s to start), 2 CPUs as in CI."""
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    from rollout.train import init_local_ray
+
+    init_local_ray(2)
     yield ray
     ray.shutdown()
     if left := wait_for_no_processes(include_ray=True, seconds=20.0):

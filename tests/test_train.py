@@ -94,7 +94,7 @@ def test_the_trained_policy_exports_and_runs_in_onnxruntime(trained, tmp_path):
     (actions,) = session.run(["deterministic_continuous_actions"], {"obs_0": obs})
     with torch.no_grad():
         expected, _, _ = network.act({network.sensor_names[0]: torch.from_numpy(obs)}, None, True)
-    np.testing.assert_allclose(actions, expected.clamp(-1, 1).numpy(), atol=1e-5)
+    np.testing.assert_allclose(actions, network.unity_action(expected).numpy(), atol=1e-5)
 
 
 def _connections(process: psutil.Process) -> list:

@@ -8,7 +8,7 @@ from mlagents_envs.base_env import ObservationType as Obs
 from tensordict import TensorDict
 
 from rollout import keys
-from rollout.specs import spec_to_dict, step_spec
+from rollout.specs import log_prob_size, spec_to_dict, step_spec
 
 VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
 GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
@@ -46,7 +46,7 @@ def segment(
     if spec.action_spec.discrete_branches:
         batch[keys.ACTION_MASK] = torch.ones_like(batch[keys.ACTION_MASK])
     batch[keys.POLICY_VERSION] = torch.zeros(n, dtype=torch.int64)
-    batch[keys.LOG_PROB] = torch.full((n,), -1.0)
+    batch[keys.LOG_PROB] = torch.full((n, log_prob_size(spec)), -1.0)
     batch.set_non_tensor(keys.BEHAVIOR, behavior)
     batch.set_non_tensor(keys.SPEC, spec_to_dict(spec))
     return batch

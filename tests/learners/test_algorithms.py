@@ -96,7 +96,7 @@ def test_vtrace_matches_a_hand_computed_case():
     spec = vector_spec(branches=(2,))
     impala = IMPALA(constant_value_network(spec), settings("impala"))
     row = one_row(spec, [1.0, 2.0])
-    row[keys.LOG_PROB] = torch.tensor([math.log(0.25), 0.0])
+    row[keys.LOG_PROB] = torch.tensor([[math.log(0.25)], [0.0]])
     impala.vtrace(row)
     assert row["value_target"].view(-1).tolist() == pytest.approx([2.3275, 1.475], abs=1e-5)
     assert row["advantage"].view(-1).tolist() == pytest.approx([1.8275, 0.975], abs=1e-5)
@@ -145,6 +145,55 @@ def test_policy_gradient_raises_the_log_prob_of_advantaged_actions():
     assert after > before * 1.15
 
 
+@pytest.mark.parametrize(
+    ("schedules", "epsilon", "beta"),
+    [
+        ({}, 0.1 + 0.1 * 0.25, 1e-5 + (0.01 - 1e-5) * 0.25),  # linear, as learning_rate
+        ({"epsilon_schedule": "constant"}, 0.2, 1e-5 + (0.01 - 1e-5) * 0.25),
+        ({"learning_rate_schedule": "constant"}, 0.2, 0.01),  # both follow it
+        ({"learning_rate_schedule": "constant", "beta_schedule": "linear"}, 0.2, 0.0025075),
+    ],
+)
+def test_epsilon_and_beta_decay_as_in_mlagents(schedules, epsilon, beta):
+    # ML-Agents: linear from the value to 0.1 (epsilon) and 1e-5 (beta) at max_steps;
+    # *_schedule defaults to learning_rate_schedule.
+    spec = vector_spec(continuous=2)
+    ppo = PPO(ActorCritic(spec), settings(beta=0.01, batch_size=16, buffer_size=32, **schedules))
+    ppo.add(segment(spec, 3, 16), torch.zeros(48, dtype=torch.int64))
+    report = ppo.update(progress=0.75)
+    assert report["Policy/Epsilon"] == pytest.approx(epsilon)
+    assert report["Policy/Beta"] == pytest.approx(beta)
+
+
+def test_ppo_clips_each_action_component_and_the_value_as_mlagents():
+    """ML-Agents' trust region: each component's ratio is clipped on its own and the
+    clipped surrogates averaged; the value may move epsilon from its estimate at update
+    start. Hand-computed on a policy N(0, 1) per dimension and a uniform branch of 2."""
+    spec = vector_spec(continuous=2, branches=(2,))
+    network = constant_value_network(spec, value=1.0)
+    with torch.no_grad():
+        network.mean.weight.zero_()
+    ppo = PPO(network, settings())
+    steps = add_flat_action(segment(spec, 1, 2))
+    steps[keys.ACTION, keys.CONTINUOUS] = torch.zeros(2, 2)
+    steps[keys.ACTION, keys.DISCRETE] = torch.zeros(2, 1, dtype=torch.int64)
+    add_flat_action(steps)
+    now = torch.tensor([-0.5 * math.log(2 * math.pi)] * 2 + [math.log(0.5)])  # current log-probs
+    # step 0: ratios (1.5, 1, 0.5) at advantage +1; step 1: ratios (1, 1, 1) at advantage -1
+    steps[keys.LOG_PROB] = torch.stack([now - torch.log(torch.tensor([1.5, 1.0, 0.5])), now])
+    steps["advantage"] = torch.tensor([[1.0], [-1.0]])
+    steps["state_value"] = torch.tensor([[0.0], [0.9]])  # V is 1.0 now
+    steps["value_target"] = torch.tensor([[2.0], [0.0]])
+    losses = ppo.loss(steps, epsilon=0.2, beta=0.0)
+    # step 0: mean(min(1.5, 1.2), 1, 0.5) = 0.9 (the joint ratio 0.75 would give 0.75);
+    # step 1: -1 for each component
+    assert float(losses["loss_objective"].detach()) == pytest.approx(-(0.9 - 1.0) / 2)
+    assert float(losses["clip_fraction"]) == pytest.approx(2 / 6)
+    # step 0: V 1.0 clipped to 0.2: max((2 - 1)^2, (2 - 0.2)^2) = 3.24;
+    # step 1: V within 0.2 of 0.9: max(1, 1) = 1. Weighted 0.5, as in ML-Agents.
+    assert float(losses["loss_critic"].detach()) == pytest.approx(0.5 * (3.24 + 1.0) / 2)
+
+
 def test_ppo_drops_steps_older_than_max_policy_lag():
     spec = vector_spec(continuous=2)
     ppo = PPO(ActorCritic(spec), settings(max_policy_lag=2, batch_size=8, buffer_size=16))
@@ -181,13 +230,14 @@ def test_learner_versions_weights_and_checkpoint_round_trip():
     learner = CentralLearner(config)
     specs = {"A?team=0": vector_spec(continuous=2), "B?team=0": vector_spec(branches=(3,))}
     assert learner.submit([]) == (0, None)  # no on-policy behavior seen yet
-    assert learner.submit([segment(specs["A?team=0"], 2, 16, "A?team=0")]) == (0, 32)
+    # an update waits for more than buffer_size (64) steps, as in ML-Agents
+    assert learner.submit([segment(specs["A?team=0"], 2, 16, "A?team=0")]) == (0, 33)
     version, wanted = learner.submit(
-        [segment(s, 4, 16, name) for name, s in specs.items()]  # both reach their buffer
+        [segment(s, 5, 16, name) for name, s in specs.items()]  # both pass their buffer
     )
-    assert version == 2 and wanted == 64  # PPO's next update; IMPALA wants no pause
+    assert version == 2 and wanted == 65  # PPO's next update; IMPALA wants no pause
     progress = learner.progress()
-    assert progress["steps"] == {"A?team=0": 96, "B?team=0": 64}
+    assert progress["steps"] == {"A?team=0": 112, "B?team=0": 80}
     assert not progress["done"]
     assert [b for b, _, _ in learner.drain_reports()] == ["A?team=0", "B?team=0"]
     _, weights = learner.weights()

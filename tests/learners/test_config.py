@@ -347,7 +347,6 @@ torch_settings: {device: cpu}
         "behaviors.Pyramids.init_path",
         "behaviors.Pyramids.self_play",
         "behaviors.Pyramids.behavioral_cloning",
-        "behaviors.Pyramids.hyperparameters.beta_schedule",
         "behaviors.Pyramids.network_settings.vis_encode_type",
         "behaviors.Pyramids.network_settings.memory",
         "behaviors.Pyramids.reward_signals.curiosity",

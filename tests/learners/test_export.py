@@ -16,7 +16,7 @@ from mlagents_envs.base_env import ActionSpec, BehaviorSpec
 from learners import checkpoint
 from learners.checkpoint import network_settings_dict, spec_to_dict
 from learners.export import export_checkpoint, export_onnx
-from learners.policies import ActorCritic, NetworkSettings
+from learners.policies import ACTION_CLIP, ActorCritic, NetworkSettings
 from rollout import cli
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 
@@ -89,7 +89,7 @@ def torch_deterministic(
     tensors = {k: torch.from_numpy(v) for k, v in obs.items()}
     torch_mask = torch.from_numpy(mask) if mask is not None else None
     continuous, discrete, _ = network.act(tensors, torch_mask, deterministic=True)
-    return continuous.clamp(-1.0, 1.0).numpy(), discrete.numpy()
+    return network.unity_action(continuous).numpy(), discrete.numpy()
 
 
 @pytest.mark.parametrize("kind", list(SPECS))
@@ -185,8 +185,9 @@ def test_stochastic_outputs_respect_masks_and_spread(tmp_path, kind):
     if spec.action_spec.continuous_size:
         samples = out["continuous_actions"]
         deterministic = out["deterministic_continuous_actions"][0]
-        assert np.abs(deterministic).max() < 0.6  # away from the clip: sample mean ~ mean
-        np.testing.assert_allclose(samples.std(0), 0.1, rtol=0.1)  # exp(log_std)
+        assert np.abs(deterministic).max() < 0.2  # away from the clip: sample mean ~ mean
+        # Unity gets clamp(a, -3, 3) / 3, as from mlagents-learn: std exp(log_std) / 3
+        np.testing.assert_allclose(samples.std(0), 0.1 / ACTION_CLIP, rtol=0.1)
         np.testing.assert_allclose(samples.mean(0), deterministic, rtol=0, atol=0.02)
 
 

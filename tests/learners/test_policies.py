@@ -38,6 +38,7 @@ def test_log_probs_agree_with_the_network(sensors, normalize):
     continuous, discrete, log_prob = actor.act(obs, mask)
     assert continuous.shape == (64, 2) and continuous.dtype == np.float32
     assert discrete.shape == (64, 2) and discrete.dtype == np.int64
+    assert log_prob.shape == (64, 4) and log_prob.dtype == np.float32  # 2 dims, 2 branches
     assert not (discrete[:, 0] == 1).any()
     with torch.no_grad():
         expected, _, _ = actor.network.evaluate(
@@ -74,10 +75,8 @@ def test_loading_weights_refreshes_the_numpy_mirror():
     actor.load_state_dict(zeros)
     continuous, _, log_prob = actor.act(observations(spec, 5000))
     assert abs(continuous.mean()) < 0.05 and abs(continuous.std() - 1.0) < 0.05
-    # log N(x; 0, 1) summed over 3 dimensions
-    np.testing.assert_allclose(
-        log_prob, (-0.5 * continuous**2 - 0.5 * np.log(2 * np.pi)).sum(-1), rtol=1e-5
-    )
+    # log N(x; 0, 1) for each of the 3 dimensions
+    np.testing.assert_allclose(log_prob, -0.5 * continuous**2 - 0.5 * np.log(2 * np.pi), rtol=1e-5)
 
 
 def test_running_norm_matches_the_statistics_of_everything_it_saw():
@@ -126,11 +125,11 @@ def test_squashed_conditional_policy_agrees_with_the_network(sensors, normalize)
     np.testing.assert_allclose(log_prob, expected.numpy(), rtol=1e-4, atol=1e-4)
     torch.testing.assert_close(torch_log_prob, again, rtol=1e-4, atol=1e-4)
     assert float(log_std.std(0).min()) > 0.01
-    # By hand, in float64: log N(atanh(a); mean, std) - log(1 - a^2), summed over dims.
+    # By hand, in float64: log N(atanh(a); mean, std) - log(1 - a^2), per dimension.
     a = continuous.astype(np.float64)
     u, std = np.arctanh(a), np.exp(log_std.double().numpy())
     gaussian = -0.5 * ((u - mean.double().numpy()) / std) ** 2 - np.log(std * np.sqrt(2 * np.pi))
-    by_hand = (gaussian - np.log1p(-(a**2))).sum(-1)
+    by_hand = gaussian - np.log1p(-(a**2))
     np.testing.assert_allclose(log_prob, by_hand, rtol=1e-3, atol=1e-3)
     # Deterministic acting is tanh(mean).
     with torch.no_grad():

@@ -21,6 +21,7 @@ from rollout import keys
 from tests.learners.fakes import segment, vector_spec
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+SAC_STEP_BUDGET = 60_000  # agent steps; measured need: see the test
 
 
 def settings(gamma: float = 0.99, **hyper: float):
@@ -185,7 +186,9 @@ def test_sac_behaviors_get_the_squashed_policy_everywhere():
 
 @pytest.mark.integration
 def test_sac_learns_3dball_in_process(tmp_path):
-    """A minute of SAC on unitysim 3DBall: mean return well above random (about 2)."""
+    """SAC on unitysim 3DBall within a budget of agent steps: mean return well above
+    random (about 2). The wall-time cap only stops a hung run; a busy machine is slower
+    but takes the same number of steps."""
     from rollout.collector import Collector
     from rollout.ports import PortAllocator, PortRange
     from rollout.unity import UnityConfig
@@ -198,16 +201,17 @@ def test_sac_learns_3dball_in_process(tmp_path):
     )
     started, best, history = time.monotonic(), 0.0, []
     try:
-        while time.monotonic() - started < 90 and best < 10:
+        while collector.metrics.agent_steps < SAC_STEP_BUDGET and best < 10:
+            assert time.monotonic() - started < 900, f"safety stop: {history}"
             version, _ = learner.submit(collector.collect(min_steps=768))
             if version > collector.version:
                 collector.load_weights(*learner.weights())
             stats = collector.snapshot().behaviors.get("3DBall?team=0")
             if stats is not None and stats.episodes >= 10:  # mean over recent episodes
                 best = max(best, stats.return_sum / stats.episodes)
-                history.append((round(time.monotonic() - started), stats.episodes, best))
+                history.append((collector.metrics.agent_steps, stats.episodes, best))
                 stats.return_sum, stats.episodes = 0.0, 0
     finally:
         collector.close()
-    print("(seconds, episodes, best mean return):", history)
-    assert best >= 10, f"(seconds, episodes, best mean return): {history}"
+    print("(agent steps, episodes, best mean return):", history)
+    assert best >= 10, f"(agent steps, episodes, best mean return): {history}"

@@ -36,8 +36,8 @@ def check_echo_segment(segment, spec, horizon: int) -> list[tuple[int, int, int,
     action_c = segment[keys.ACTION, keys.CONTINUOUS]
     action_d = segment[keys.ACTION, keys.DISCRETE]
     ids = segment[keys.AGENT_ID]
-    # The next observation echoes the action sent to this agent (clipped, as Unity does).
-    torch.testing.assert_close(nxt[:, 3:5], action_c.clamp(-1, 1))
+    # The next observation echoes the action sent to this agent (ML-Agents' scale).
+    torch.testing.assert_close(nxt[:, 3:5], action_c.clamp(-3, 3) / 3)
     assert torch.equal(nxt[:, 5:7], action_d.float())
     assert torch.equal(nxt[:, 0], ids.float()) and torch.equal(obs[:, 0], ids.float())
     reward = segment[keys.NEXT, keys.REWARD][:, 0]

@@ -6,6 +6,7 @@ import math
 import os
 import signal
 
+import psutil
 import pytest
 import torch
 
@@ -73,6 +74,19 @@ def test_dungeon_escape_agents_come_and_go(ray_session, registry):
             assert (segment[keys.AGENT_ID][part] == segment[keys.AGENT_ID][part.start]).all()
     group_rewards = torch.cat([s[keys.NEXT, keys.GROUP_REWARD] for s in segments])
     assert group_rewards.shape[0] == ids.shape[0]
+
+
+def test_workers_and_their_players_run_at_the_launchers_priority(ray_session, registry):
+    """Local mode starts Ray's workers at our niceness, not Ray's default 15, and the
+    Unity player inherits it: a training run does not yield its CPU to everything else."""
+    worker = start_worker(ray_session, registry, "unitysim:3DBall")
+    try:
+        collect(ray_session, worker, 1)
+        identity = ray_session.get(worker.identity.remote())
+        niceness = {psutil.Process(identity[k]).nice() for k in ("pid", "player_pid")}
+    finally:
+        stop_worker(ray_session, worker)
+    assert niceness == {os.nice(0)}
 
 
 def test_walljump_agents_switch_behaviors(ray_session, registry):

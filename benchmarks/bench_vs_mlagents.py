@@ -1,0 +1,348 @@
+"""mlagents-learn against ``unity-rollout train``, side by side: same unitysim build, same
+ML-Agents YAML, 2 Unity instances each, the runs of a round interleaved, several seeds.
+
+Each case names ML-Agents' own config (``benchmarks/mlagents_configs/``) and our shipped
+one (``config/``). A round runs, one after the other on the same build: mlagents-learn with
+ML-Agents' config, ``unity-rollout train`` with the same file, and ``unity-rollout train``
+with the shipped config. Every run is stopped once its summaries reached every target
+level (or at the case's cap). Reported per run, counted from process start: steps and
+seconds to each target level (the first summary whose mean reward reaches it, as
+mlagents-learn prints them), the first environment step and the first summary; per
+round, the ratios to mlagents-learn.
+
+mlagents-learn 1.1.0 runs from the anchor recipe's work directory (``--anchor``, default
+``$MLAGENTS_ANCHOR`` or ``/tmp/mlbench``): its ``venv/``, ``shim/`` and
+``mlagents_learn_launcher.py``, which ``run_mlagents_learn.sh`` of the anchor recipe
+creates (see docs/benchmarks.md). Every process a run starts is found by an environment
+tag and ended when the run ends.
+
+    .venv/bin/python benchmarks/bench_vs_mlagents.py --only 3DBall-PPO --seeds 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import psutil
+from machine import machine  # benchmarks/machine.py
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
+SUMMARY = re.compile(
+    r"(\S+)\. Step: (\d+)\. Time Elapsed: [\d.]+ s\. Mean Reward: (-?\d+(?:\.\d+)?)"
+)
+MARK = re.compile(r"\[mlbench-mark\] reset_env_done ([\d.]+)")
+TAG = "UNITY_ROLLOUT_BENCH_RUN"
+# the variants of a round: mlagents-learn and ours with ML-Agents' config, ours with ours
+ANCHOR, OURS_MLAGENTS, OURS_SHIPPED = (
+    "mlagents-learn",
+    "ours-mlagents-config",
+    "ours-shipped-config",
+)
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    env: str  # unitysim environment, built as a player for both trainers
+    mlagents_config: str  # in benchmarks/mlagents_configs/
+    shipped_config: str  # in config/
+    targets: tuple[float, ...]  # reward levels, ascending; the last one is the goal
+    cap_s: float  # a run not there by then is stopped and reported as not reaching it
+
+
+CASES = (
+    Case("3DBall-PPO", "3DBall", "ppo_3DBall.yaml", "3DBall.yaml", (90.0,), 600),
+    Case("3DBall-SAC", "3DBall", "sac_3DBall.yaml", "3DBall_sac.yaml", (90.0,), 900),
+    Case("Basic-PPO", "Basic", "ppo_Basic.yaml", "Basic.yaml", (0.9,), 300),
+    Case(
+        "GridWorld-PPO", "GridWorld", "ppo_GridWorld.yaml", "GridWorld.yaml", (0.0, 0.3, 0.8), 600
+    ),
+)
+
+
+@dataclass
+class Run:
+    variant: str
+    seed: int
+    summaries: list[tuple[float, int, float]] = field(default_factory=list)  # (s, step, reward)
+    first_step_s: float | None = None
+    exit_code: int | None = None
+    wall_s: float = 0.0
+    leftovers: int = 0
+    log: Path | None = None
+
+    def reached(self, level: float) -> tuple[float, int] | None:
+        """(seconds, step) of the first summary at or above ``level``."""
+        return next(((t, s) for t, s, r in self.summaries if r >= level), None)
+
+    def report(self, targets: tuple[float, ...]) -> dict:
+        levels = {}
+        for level in targets:
+            hit = self.reached(level)
+            levels[str(level)] = None if hit is None else {"s": round(hit[0], 1), "step": hit[1]}
+        return {
+            "variant": self.variant,
+            "seed": self.seed,
+            "targets": levels,
+            "first_step_s": self.first_step_s,
+            "first_summary_s": round(self.summaries[0][0], 1) if self.summaries else None,
+            "best_reward": max((r for _, _, r in self.summaries), default=None),
+            "exit_code": self.exit_code,
+            "wall_s": round(self.wall_s, 1),
+            "leftover_processes": self.leftovers,
+        }
+
+
+def tagged(tag: str) -> list[psutil.Process]:
+    found = []
+    for process in psutil.process_iter():
+        try:
+            if process.environ().get(TAG) == tag:
+                found.append(process)
+        except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
+            continue
+    return found
+
+
+def run_command(
+    command: list[str],
+    env: dict[str, str],
+    run: Run,
+    targets: tuple[float, ...],
+    cap_s: float,
+    stop_signal: signal.Signals,
+    log: Path,
+) -> None:
+    """Run until every target level is reached (or the cap), reading summary lines live."""
+    tag = uuid.uuid4().hex
+    run.log = log
+    started = time.time()
+    process = subprocess.Popen(
+        command,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+        env={**os.environ, **env, TAG: tag, "PYTHONUNBUFFERED": "1"},
+    )
+    done = threading.Event()
+
+    def read() -> None:
+        assert process.stdout is not None
+        with log.open("w") as out:
+            for line in process.stdout:
+                now = time.time() - started
+                out.write(f"[+{now:8.3f}s] {line}")
+                if (mark := MARK.search(line)) and run.first_step_s is None:
+                    run.first_step_s = round(float(mark.group(1)) - started, 2)
+                if match := SUMMARY.search(line):
+                    run.summaries.append((now, int(match.group(2)), float(match.group(3))))
+                    if run.reached(targets[-1]) is not None:
+                        done.set()
+        done.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    done.wait(cap_s)
+    if process.poll() is None:
+        os.killpg(process.pid, stop_signal)  # graceful: the trainer stops its players
+        try:
+            process.wait(60)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    reader.join(10)
+    run.exit_code, run.wall_s = process.returncode, time.time() - started
+    left = tagged(tag)
+    run.leftovers = len(left)
+    for leftover in left:
+        leftover.kill()
+
+
+def anchor_run(case: Case, seed: int, build: Path, anchor: Path, work: Path, port: int) -> Run:
+    run = Run(ANCHOR, seed)
+    command = [
+        str(anchor / "venv/bin/python"),
+        str(anchor / "mlagents_learn_launcher.py"),
+        str(CONFIGS / case.mlagents_config),
+        f"--env={build.with_suffix('')}",
+        f"--run-id=ml-{case.name}-{seed}",
+        "--no-graphics",
+        "--num-envs=2",
+        "--force",
+        "--results-dir",
+        str(work / "mlagents"),
+        "--base-port",
+        str(port),
+        "--seed",
+        str(seed),
+    ]
+    env = {"PYTHONPATH": str(anchor / "shim"), "MLBENCH_MARKS": "1"}
+    log = work / f"ml-{case.name}-{seed}.log"
+    run_command(command, env, run, case.targets, case.cap_s, signal.SIGTERM, log)
+    return run
+
+
+def our_run(case: Case, seed: int, build: Path, config: Path, variant: str, work: Path) -> Run:
+    run = Run(variant, seed)
+    run_id = f"ours-{case.name}-{'ml' if variant == OURS_MLAGENTS else 'shipped'}-{seed}"
+    command = [
+        str(ROOT / ".venv/bin/unity-rollout"),
+        "train",
+        "--env",
+        str(build),
+        "--config",
+        str(config),
+        "--results-dir",
+        str(work / "ours"),
+        "--run-id",
+        run_id,
+        "--seed",
+        str(seed),
+        "--workers",
+        "2",
+        "--force",
+        "--no-progress",
+        "--max-seconds",
+        str(case.cap_s + 30),
+    ]
+    run_command(command, {}, run, case.targets, case.cap_s, signal.SIGINT, work / f"{run_id}.log")
+    summary = work / "ours" / run_id / "summary.json"
+    if summary.is_file():
+        run.first_step_s = json.loads(summary.read_text()).get("startup", {}).get("first_step_s")
+    return run
+
+
+def build_player(env: str, work: Path) -> Path:
+    subprocess.run(
+        [str(ROOT / ".venv/bin/unity-rollout"), "unitysim", "build", str(work / env), "--env", env],
+        check=True,
+        capture_output=True,
+    )
+    return work / env / f"{env}.x86_64"
+
+
+def ratio(ours: Run, anchor: Run, level: float, index: int) -> float | None:
+    mine, theirs = ours.reached(level), anchor.reached(level)
+    return None if mine is None or theirs is None else round(mine[index] / theirs[index], 2)
+
+
+def print_round(case: Case, runs: list[Run]) -> None:
+    anchor = runs[0]
+    for run in runs:
+        if not run.summaries and run.log is not None:  # it failed: show why
+            tail = run.log.read_text().splitlines()[-5:]
+            print(
+                f"{case.name} seed {run.seed} {run.variant} exited {run.exit_code}:",
+                *tail,
+                sep="\n  ",
+            )
+        cells = []
+        for level in case.targets:
+            hit = run.reached(level)
+            text = "not reached" if hit is None else f"{hit[1]:,} steps, {hit[0]:.0f} s"
+            if run is not anchor:
+                steps, seconds = ratio(run, anchor, level, 1), ratio(run, anchor, level, 0)
+                text += f" (steps x{steps}, time x{seconds})"
+            cells.append(f"{level:g}: {text}")
+        print(
+            f"{case.name} seed {run.seed} | {run.variant:<20} | {'; '.join(cells)} | first step "
+            f"{run.first_step_s} s, first summary "
+            f"{run.summaries[0][0] if run.summaries else float('nan'):.1f} s",
+            flush=True,
+        )
+
+
+def medians(case: Case, rounds: list[list[Run]]) -> dict:
+    """Per variant and level: median steps and seconds, and median ratios to the anchor."""
+    out: dict = {}
+    for column in range(1, len(rounds[0])):
+        variant = rounds[0][column].variant
+        per_level = {}
+        for level in case.targets:
+            steps = [r[column].reached(level) for r in rounds]
+            step_ratios = [x for r in rounds if (x := ratio(r[column], r[0], level, 1))]
+            time_ratios = [x for r in rounds if (x := ratio(r[column], r[0], level, 0))]
+            per_level[str(level)] = {
+                "reached": sum(hit is not None for hit in steps),
+                "rounds": len(rounds),
+                "median_step_ratio": statistics.median(step_ratios) if step_ratios else None,
+                "median_time_ratio": statistics.median(time_ratios) if time_ratios else None,
+            }
+        out[variant] = per_level
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", nargs="*", default=[], help="case names (e.g. 3DBall-PPO)")
+    parser.add_argument("--seeds", type=int, default=3, help="rounds, one seed each (>= 2)")
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--anchor", default=os.environ.get("MLAGENTS_ANCHOR", "/tmp/mlbench"))
+    parser.add_argument(
+        "--skip",
+        nargs="*",
+        default=[],
+        choices=[OURS_MLAGENTS, OURS_SHIPPED],
+        help="our variants to leave out",
+    )
+    parser.add_argument("--json", help="write the results here too")
+    parser.add_argument("--work", help="keep builds, logs and run directories here")
+    args = parser.parse_args()
+    anchor = Path(args.anchor)
+    if not (anchor / "mlagents_learn_launcher.py").is_file():
+        print(
+            f"error: no mlagents-learn anchor in {anchor}: run the anchor recipe's "
+            "run_mlagents_learn.sh once with WORKDIR there",
+            file=sys.stderr,
+        )
+        return 2
+    report: dict = {"machine": machine(), "cases": []}
+    with tempfile.TemporaryDirectory(prefix="bench-vs-mlagents-") as tmp:
+        work = Path(args.work or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for case in CASES:
+            if args.only and case.name not in args.only:
+                continue
+            build = build_player(case.env, work)
+            rounds = []
+            for seed in range(args.first_seed, args.first_seed + args.seeds):
+                runs = [anchor_run(case, seed, build, anchor, work, 31000 + 10 * seed)]
+                for variant, config in (
+                    (OURS_MLAGENTS, CONFIGS / case.mlagents_config),
+                    (OURS_SHIPPED, ROOT / "config" / case.shipped_config),
+                ):
+                    if variant not in args.skip:
+                        runs.append(our_run(case, seed, build, config, variant, work))
+                print_round(case, runs)
+                rounds.append(runs)
+            report["cases"].append(
+                {
+                    "case": case.name,
+                    "targets": case.targets,
+                    "runs": [run.report(case.targets) for runs in rounds for run in runs],
+                    "medians": medians(case, rounds),
+                }
+            )
+            print(json.dumps(report["cases"][-1]["medians"]), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
