@@ -165,10 +165,11 @@ def test_epsilon_and_beta_decay_as_in_mlagents(schedules, epsilon, beta):
     assert report["Policy/Beta"] == pytest.approx(beta)
 
 
-def test_ppo_clips_each_action_component_and_the_value_as_mlagents():
+def test_ppo_clips_each_action_component_not_the_value_as_mlagents_learn():
     """ML-Agents' trust region: each component's ratio is clipped on its own and the
-    clipped surrogates averaged; the value may move epsilon from its estimate at update
-    start. Hand-computed on a policy N(0, 1) per dimension and a uniform branch of 2."""
+    clipped surrogates averaged; the value loss is the plain squared error (mlagents-learn
+    1.1.0's value clip never binds). Hand-computed on a policy N(0, 1) per dimension and a
+    uniform branch of 2."""
     spec = vector_spec(continuous=2, branches=(2,))
     network = constant_value_network(spec, value=1.0)
     with torch.no_grad():
@@ -189,9 +190,9 @@ def test_ppo_clips_each_action_component_and_the_value_as_mlagents():
     # step 1: -1 for each component
     assert float(losses["loss_objective"].detach()) == pytest.approx(-(0.9 - 1.0) / 2)
     assert float(losses["clip_fraction"]) == pytest.approx(2 / 6)
-    # step 0: V 1.0 clipped to 0.2: max((2 - 1)^2, (2 - 0.2)^2) = 3.24;
-    # step 1: V within 0.2 of 0.9: max(1, 1) = 1. Weighted 0.5, as in ML-Agents.
-    assert float(losses["loss_critic"].detach()) == pytest.approx(0.5 * (3.24 + 1.0) / 2)
+    # (2 - 1)^2 and (0 - 1)^2, although V moved 1.0 from step 0's old estimate (a clip at
+    # 0.2 would give (2 - 0.2)^2 = 3.24 there). Weighted 0.5, as in ML-Agents.
+    assert float(losses["loss_critic"].detach()) == pytest.approx(0.5 * (1.0 + 1.0) / 2)
 
 
 def test_ppo_drops_steps_older_than_max_policy_lag():
