@@ -41,7 +41,7 @@ def one_seed(args: argparse.Namespace) -> dict:
     settings = list(config.behaviors.values()) or [config.default]
     every = args.summary_freq or min(s.summary_freq for s in settings)
     horizon = min(s.time_horizon for s in settings)
-    learner = CentralLearner(config)
+    learner = CentralLearner(config, seed=args.seed)
     allocator = PortAllocator(registry_dir=args.registry)
     collectors = [
         Collector(

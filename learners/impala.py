@@ -51,7 +51,7 @@ class IMPALA:
             functional=False,
         )
         self.loss.set_keys(action=FLAT_ACTION, sample_log_prob=keys.LOG_PROB)
-        self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate)
+        self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate, fused=True)
         self.buffer = SegmentBuffer(h.buffer_size)
         self.max_lag_seen = 0
 

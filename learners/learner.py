@@ -66,11 +66,13 @@ def network_settings(settings: TrainerSettings) -> NetworkSettings:
     return settings.network_settings
 
 
-def policy_factory(config: RunConfig) -> PolicyFactory:
-    """The factory workers and learner share: network settings of each configured behavior."""
+def policy_factory(config: RunConfig, seed: int = 0) -> PolicyFactory:
+    """The factory workers and learner share: network settings of each configured behavior,
+    initial weights from the run's seed."""
     return PolicyFactory(
         {name: network_settings(s) for name, s in config.behaviors.items()},
         network_settings(config.default),
+        seed,
     )
 
 
@@ -101,13 +103,17 @@ class LearnerStats:
 
 class CentralLearner:
     def __init__(
-        self, config: RunConfig, max_steps: int | None = None, torch_threads: int | None = None
+        self,
+        config: RunConfig,
+        max_steps: int | None = None,
+        torch_threads: int | None = None,
+        seed: int = 0,
     ) -> None:
         if torch_threads is not None:  # the Ray actor shares its node with Unity workers
             torch.set_num_threads(torch_threads)
         self.config = config
         self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)
-        self.factory = policy_factory(config)
+        self.factory = policy_factory(config, seed)
         self.version = 0
         self.behaviors: dict[str, BehaviorState] = {}
         self.stats = LearnerStats()
@@ -205,11 +211,14 @@ class CentralLearner:
             behavior.updates = [int(v) for v in entry["updates"]]
 
 
-def learner_actor(config: RunConfig, max_steps: int | None = None, num_cpus: float = 0) -> Any:
+def learner_actor(
+    config: RunConfig, max_steps: int | None = None, num_cpus: float = 0, seed: int = 0
+) -> Any:
     """Start the learner as a Ray actor (imported here so the class itself needs no Ray)."""
     import ray
 
-    return ray.remote(CentralLearner).options(num_cpus=num_cpus).remote(config, max_steps, 1)
+    remote = ray.remote(CentralLearner).options(num_cpus=num_cpus)
+    return remote.remote(config, max_steps, 1, seed)
 
 
 __all__ = ["Algorithm", "CentralLearner", "base_name", "learner_actor", "policy_factory"]

@@ -19,6 +19,7 @@ correction; and ``conditional_sigma``: the log-std comes from a head on the trun
 from __future__ import annotations
 
 import math
+import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -303,7 +304,7 @@ class ActorCritic(nn.Module):
         mask: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(log-probs [..., c + branches] as ``act`` gives them, entropy, value) of given
-        actions; batch dims are kept."""
+        actions under the current weights (what PPO's loss needs); batch dims are kept."""
         hidden = self.features(obs)
         normal, branches = self.distributions(hidden, mask)
         lead = hidden.shape[:-1]
@@ -315,9 +316,9 @@ class ActorCritic(nn.Module):
                 log_probs.append(normal.log_prob(u) - tanh_log_det(u))
             else:
                 log_probs.append(normal.log_prob(continuous))
-            # squashed: the pre-squash Gaussian's entropy (no closed form after tanh;
-            # ML-Agents reports the same)
-            entropy = entropy + normal.entropy().sum(-1)
+            # ML-Agents' measure, which beta weighs: the mean over dimensions (squashed:
+            # the pre-squash Gaussian's, which has a closed form; ML-Agents does the same)
+            entropy = entropy + normal.entropy().mean(-1)
         for index, dist in enumerate(branches):
             assert discrete is not None
             log_probs.append(dist.log_prob(discrete[..., index]).unsqueeze(-1))
@@ -449,7 +450,10 @@ def base_name(behavior: str) -> str:
 
 @dataclass(frozen=True)
 class PolicyFactory:
-    """Builds a behavior's network the same way on the learner and in every worker.
+    """Builds a behavior's network the same way on the learner and in every worker, down
+    to the initial weights (drawn from ``seed`` and the behavior's name): before the first
+    update every worker acts with the very policy the learner will improve, as
+    mlagents-learn's one policy does, so the first update's ratios start at 1.
 
     Picklable, so the service ships it to workers; ``settings`` is keyed by the behavior
     name without ``?team=``, as in trainer configs.
@@ -457,9 +461,12 @@ class PolicyFactory:
 
     settings: Mapping[str, NetworkSettings] = field(default_factory=dict)
     default: NetworkSettings = NetworkSettings()
+    seed: int = 0
 
     def network(self, behavior: str, spec: BehaviorSpec) -> ActorCritic:
-        return ActorCritic(spec, self.settings.get(base_name(behavior), self.default))
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(zlib.crc32(f"{self.seed}/{behavior}".encode()))
+            return ActorCritic(spec, self.settings.get(base_name(behavior), self.default))
 
     def __call__(self, behavior: str, spec: BehaviorSpec) -> RolloutActor:
         return RolloutActor(self.network(behavior, spec))

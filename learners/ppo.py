@@ -28,13 +28,14 @@ are dropped from the loss (they still serve as GAE context) and counted.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDict
 from torchrl.objectives.value import GAE
 
-from learners.modules import FLAT_ACTION, obs_keys, probabilistic_actor, value_operator
+from learners.modules import value_operator
 from learners.onpolicy import (
     TRAIN,
     SegmentBuffer,
@@ -51,15 +52,58 @@ if TYPE_CHECKING:
     from learners.config import TrainerSettings
 
 
+@dataclass(frozen=True)
+class Steps:
+    """The steps of one update as plain tensors, ``[N, ...]`` each: a minibatch is then
+    one gather per field (a TensorDict's per-key bookkeeping cost as much as the network)."""
+
+    obs: dict[str, torch.Tensor]
+    continuous: torch.Tensor | None
+    discrete: torch.Tensor | None
+    mask: torch.Tensor | None  # True = allowed
+    log_prob: torch.Tensor  # [N, components], the acting policy's
+    advantage: torch.Tensor  # [N]
+    value_target: torch.Tensor  # [N]
+
+    @classmethod
+    def of(cls, steps: TensorDict) -> Steps:
+        action = steps[keys.ACTION]
+        return cls(
+            obs=dict(steps[keys.OBS].items()),
+            continuous=action.get(keys.CONTINUOUS, None),
+            discrete=action.get(keys.DISCRETE, None),
+            mask=steps.get(keys.ACTION_MASK, None),
+            log_prob=steps[keys.LOG_PROB],
+            advantage=steps["advantage"].squeeze(-1),
+            value_target=steps["value_target"].squeeze(-1),
+        )
+
+    def __getitem__(self, index: torch.Tensor) -> Steps:
+        def pick(tensor: torch.Tensor | None) -> torch.Tensor | None:
+            return None if tensor is None else tensor[index]
+
+        return Steps(
+            {name: obs[index] for name, obs in self.obs.items()},
+            pick(self.continuous),
+            pick(self.discrete),
+            pick(self.mask),
+            self.log_prob[index],
+            self.advantage[index],
+            self.value_target[index],
+        )
+
+
 class PPO:
     def __init__(self, network: ActorCritic, settings: TrainerSettings) -> None:
         self.network, self.settings = network, settings
         h = settings.hyperparameters
-        self.actor, self.critic = probabilistic_actor(network), value_operator(network)
         self.advantage = GAE(
-            gamma=settings.gamma, lmbda=h.lambd, value_network=self.critic, average_gae=False
+            gamma=settings.gamma,
+            lmbda=h.lambd,
+            value_network=value_operator(network),
+            average_gae=False,
         )
-        self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate)
+        self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate, fused=True)
         self.buffer = SegmentBuffer(h.buffer_size)
         self.stale_steps = 0
 
@@ -96,10 +140,11 @@ class PPO:
         beta = decay(h.beta, progress, h.beta_schedule or schedule, BETA_END)
         set_learning_rate(self.optimizer, lr)
         totals: dict[str, float] = {}
+        data = Steps.of(steps)
         for _ in range(h.num_epoch):
-            for index in torch.randperm(len(steps)).split(h.batch_size):
+            for index in torch.randperm(len(data.log_prob)).split(h.batch_size):
                 if len(index) == h.batch_size:
-                    losses = self.loss(steps[index], epsilon, beta)
+                    losses = self.loss(data[index], epsilon, beta)
                     gradient_step(losses, self.optimizer, totals)
         mean = means(totals)
         return {
@@ -112,19 +157,18 @@ class PPO:
             "Policy/Samples": float(len(steps)),
         }
 
-    def loss(self, steps: TensorDict, epsilon: float, beta: float) -> dict[str, torch.Tensor]:
+    def loss(self, steps: Steps, epsilon: float, beta: float) -> dict[str, torch.Tensor]:
         """ML-Agents' PPO loss on a minibatch: per-component clipped surrogate, squared
         value error (weight 0.5), entropy bonus (weight ``beta``)."""
-        dist = self.actor.get_dist(steps)
-        log_ratio = dist.log_prob_parts(steps[FLAT_ACTION]) - steps[keys.LOG_PROB]
+        log_prob, entropy, value = self.network.evaluate(
+            steps.obs, steps.continuous, steps.discrete, steps.mask
+        )
+        log_ratio = log_prob - steps.log_prob
         ratio = log_ratio.exp()  # [B, components]
-        advantage = steps["advantage"]  # [B, 1]
+        advantage = steps.advantage.unsqueeze(-1)
         surrogate = torch.min(ratio * advantage, ratio.clamp(1 - epsilon, 1 + epsilon) * advantage)
-
-        value = self.critic(steps.select(*obs_keys(self.network)))["state_value"]
-        value_loss = (steps["value_target"] - value).square()
-
-        entropy = dist.entropy().mean()
+        value_loss = (steps.value_target - value).square()
+        entropy = entropy.mean()
         return {
             "loss_objective": -surrogate.mean(),
             "loss_critic": 0.5 * value_loss.mean(),

@@ -11,6 +11,10 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rollout.local_ray import BackgroundRay
 
 Command = Callable[[argparse.Namespace], int]
 
@@ -44,10 +48,22 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
-    import logging
-
     if not args.address:
         _loopback_only_ray()
+    from rollout.local_ray import BackgroundRay
+
+    # Ray comes up while the imports below (torch and friends) load.
+    starting = None if args.address else BackgroundRay(args.cpus)
+    try:
+        return _train(args, starting)
+    finally:
+        if starting is not None:
+            starting.shutdown()
+
+
+def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
+    import logging
+
     from rich.console import Console
 
     from rollout.service import RolloutError
@@ -72,7 +88,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         num_areas=args.num_areas,
     )
     try:
-        result = train(options)
+        result = train(options, starting)
     except TrainingError as error:
         console.print(f"[red]error:[/red] {error}", soft_wrap=True)
         return 2
@@ -109,9 +125,9 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from learners.policies import actor_factory
+    from rollout.local_ray import init_local_ray
     from rollout.service import RolloutService, ServiceConfig
     from rollout.testing import CountingLearner
-    from rollout.train import init_local_ray
     from rollout.unity import UnityConfig, UnityError, resolve_build
 
     console = Console()

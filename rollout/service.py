@@ -60,6 +60,10 @@ class ServiceConfig:
     collects_per_worker: int = 1
     learner_in_flight: int = 2
     worker_cpus: float = 1.0
+    # Wait for the learner's weights before the first collect (a resumed learner). A fresh
+    # learner holds the factory's initial weights, which each worker builds for itself:
+    # collection then starts while the learner's process is still starting.
+    await_learner_weights: bool = True
     max_worker_restarts: int = 3
     restart_wait_s: float = 120.0  # how long a worker may take to come back after a death
     port_range: PortRange | None = None
@@ -152,10 +156,15 @@ class RolloutService:
         self._started = time.perf_counter()
         # Workers first: their processes and Unity players start while the learner's does.
         self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
-        # A resumed learner already has trained weights: workers start from them.
-        self._weights_ref = self.learner.weights.remote()
-        self._version = int(ray.get(self._weights_ref)[0])
-        self._wanted = ray.get(self.learner.submit.remote([]))[1]
+        first = self.learner.submit.remote([])  # (version, demand), as every submit answers
+        if self.config.await_learner_weights:
+            self._weights_ref = self.learner.weights.remote()
+            self._version = int(ray.get(self._weights_ref)[0])
+            self._wanted = ray.get(first)[1]
+        else:  # answered whenever the learner is up, like any submission
+            self._version, self._wanted = 0, None
+            self._submits.append(first)
+            self._submit_steps[first] = 0
         self._worker_version = [0] * len(self.workers)
         self._failures = [0] * len(self.workers)
         self._restarting.clear()

@@ -30,6 +30,7 @@ import yaml
 from learners import checkpoint
 from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
 from learners.learner import learner_actor, policy_factory
+from rollout.local_ray import BackgroundRay, init_local_ray
 from rollout.service import RolloutError, RolloutService, ServiceConfig
 from rollout.summaries import Summaries, next_multiple
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
@@ -68,19 +69,6 @@ class TrainResult:
     checkpoint: Path
     interrupted: bool
     latest: dict[str, dict[str, float | None]]
-
-
-def init_local_ray(cpus: int) -> None:
-    """Local mode's Ray: no dashboard, and workers (with the Unity players they start) at
-    the priority of the command that launched them; Ray's default, niceness 15, would hand
-    their CPU to every other process on a shared machine. On a cluster the operator sets
-    it at ``ray start`` (``RAY_worker_niceness``; deploy/README.md)."""
-    ray.init(
-        num_cpus=cpus,
-        include_dashboard=False,
-        log_to_driver=False,
-        _system_config={"worker_niceness": 0},
-    )
 
 
 def load_run_config(options: TrainOptions) -> RunConfig:
@@ -134,7 +122,7 @@ def build_system(
     options: TrainOptions, config: RunConfig, unity: UnityConfig, resume: dict[str, Any] | None
 ) -> tuple[RolloutService, Any]:
     """Learner actor (restored when resuming) and the service with its workers (not started)."""
-    learner = learner_actor(config, options.max_steps)
+    learner = learner_actor(config, options.max_steps, seed=options.seed)
     if resume is not None:
         ray.get(learner.load_state_dict.remote(resume))
     horizons = [s.time_horizon for s in config.behaviors.values()] or [config.default.time_horizon]
@@ -146,8 +134,10 @@ def build_system(
         collects_per_worker=2 if asynchronous else 1,
         learner_in_flight=4 if asynchronous else 2,
         worker_cpus=1.0 if options.address else min(1.0, options.cpus / options.workers),
+        await_learner_weights=resume is not None,
     )
-    return RolloutService(service_config, policy_factory(config), learner), learner
+    factory = policy_factory(config, options.seed)
+    return RolloutService(service_config, factory, learner), learner
 
 
 @contextmanager
@@ -186,7 +176,9 @@ class Checkpoints:
         return path
 
 
-def train(options: TrainOptions) -> TrainResult:
+def train(options: TrainOptions, starting: BackgroundRay | None = None) -> TrainResult:
+    """One training run. ``starting``: a local Ray the caller started in the background
+    (waited for once the options are checked, left to the caller to stop)."""
     config = load_run_config(options)
     run_dir, resume = prepare_run_dir(options)
     unity = unity_config(options, config, run_dir)
@@ -199,7 +191,9 @@ def train(options: TrainOptions) -> TrainResult:
         )
     )
     started_ray = False
-    if not ray.is_initialized():
+    if starting is not None:
+        starting.wait()
+    elif not ray.is_initialized():
         if options.address:
             ray.init(address=options.address, log_to_driver=False)
         else:

@@ -15,7 +15,7 @@ from learners.impala import IMPALA
 from learners.learner import CentralLearner, policy_lag
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic, NetworkSettings
-from learners.ppo import PPO
+from learners.ppo import PPO, Steps
 from rollout import keys
 from tests.learners.fakes import segment, vector_spec
 
@@ -175,23 +175,20 @@ def test_ppo_clips_each_action_component_not_the_value_as_mlagents_learn():
     with torch.no_grad():
         network.mean.weight.zero_()
     ppo = PPO(network, settings())
-    steps = add_flat_action(segment(spec, 1, 2))
+    steps = segment(spec, 1, 2)
     steps[keys.ACTION, keys.CONTINUOUS] = torch.zeros(2, 2)
     steps[keys.ACTION, keys.DISCRETE] = torch.zeros(2, 1, dtype=torch.int64)
-    add_flat_action(steps)
     now = torch.tensor([-0.5 * math.log(2 * math.pi)] * 2 + [math.log(0.5)])  # current log-probs
     # step 0: ratios (1.5, 1, 0.5) at advantage +1; step 1: ratios (1, 1, 1) at advantage -1
     steps[keys.LOG_PROB] = torch.stack([now - torch.log(torch.tensor([1.5, 1.0, 0.5])), now])
     steps["advantage"] = torch.tensor([[1.0], [-1.0]])
-    steps["state_value"] = torch.tensor([[0.0], [0.9]])  # V is 1.0 now
-    steps["value_target"] = torch.tensor([[2.0], [0.0]])
-    losses = ppo.loss(steps, epsilon=0.2, beta=0.0)
+    steps["value_target"] = torch.tensor([[2.0], [0.0]])  # V is 1.0
+    losses = ppo.loss(Steps.of(steps), epsilon=0.2, beta=0.0)
     # step 0: mean(min(1.5, 1.2), 1, 0.5) = 0.9 (the joint ratio 0.75 would give 0.75);
     # step 1: -1 for each component
     assert float(losses["loss_objective"].detach()) == pytest.approx(-(0.9 - 1.0) / 2)
     assert float(losses["clip_fraction"]) == pytest.approx(2 / 6)
-    # (2 - 1)^2 and (0 - 1)^2, although V moved 1.0 from step 0's old estimate (a clip at
-    # 0.2 would give (2 - 0.2)^2 = 3.24 there). Weighted 0.5, as in ML-Agents.
+    # (2 - 1)^2 and (0 - 1)^2: no clip around an old estimate. Weighted 0.5, as in ML-Agents.
     assert float(losses["loss_critic"].detach()) == pytest.approx(0.5 * (1.0 + 1.0) / 2)
 
 

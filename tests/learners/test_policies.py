@@ -8,7 +8,13 @@ import pytest
 import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
-from learners.policies import ActorCritic, NetworkSettings, RolloutActor, RunningNorm
+from learners.policies import (
+    ActorCritic,
+    NetworkSettings,
+    PolicyFactory,
+    RolloutActor,
+    RunningNorm,
+)
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 
 
@@ -142,3 +148,25 @@ def test_default_settings_keep_the_state_independent_unsquashed_gaussian():
     network = ActorCritic(hybrid_spec(VECTOR))
     assert network.log_std is not None and network.log_std_head is None
     assert "log_std_head.weight" not in network.state_dict()
+
+
+def test_the_factory_builds_the_same_initial_weights_in_every_process():
+    """Workers and the learner each build a behavior's network: from one seed and the
+    behavior's name they start from the same weights, so data acted before the first
+    update is on-policy for it. Other seeds and behaviors get other weights, and the
+    caller's random stream is left as it was."""
+    spec = hybrid_spec(VECTOR)
+    torch.manual_seed(123)
+    expected_next = torch.rand(1)
+    torch.manual_seed(123)
+    first = PolicyFactory(seed=7).network("A?team=0", spec).state_dict()
+    assert torch.equal(torch.rand(1), expected_next)
+    torch.manual_seed(999)  # another process's state
+    again = PolicyFactory(seed=7).network("A?team=0", spec).state_dict()
+    for other in (
+        PolicyFactory(seed=8).network("A?team=0", spec),
+        PolicyFactory(seed=7).network("B?team=0", spec),
+    ):
+        assert not torch.equal(other.state_dict()["mean.weight"], first["mean.weight"])
+    assert first.keys() == again.keys()
+    assert all(torch.equal(first[k], again[k]) for k in first)

@@ -1,0 +1,59 @@
+"""Local mode's Ray: one node on this machine, and a way to start it in the background.
+
+``init_local_ray`` is the blocking start (tests, ``collect``). ``BackgroundRay`` starts
+the same Ray on a thread, so that the few seconds Ray takes to come up overlap the
+driver's own imports (torch, tensordict, torchrl take as long again); ``train`` waits for
+it just before it needs it. The thread stays alive until ``shutdown``: Ray's node
+processes die with the thread that started them (their parent-death signal is bound to
+it), so a thread that returned would take the node down with it.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import ray
+
+
+def init_local_ray(cpus: int) -> None:
+    """No dashboard, and workers (with the Unity players they start) at the priority of
+    the command that launched them; Ray's default, niceness 15, would hand their CPU to
+    every other process on a shared machine. On a cluster the operator sets it at
+    ``ray start`` (``RAY_worker_niceness``; deploy/README.md)."""
+    ray.init(
+        num_cpus=cpus,
+        include_dashboard=False,
+        log_to_driver=False,
+        _system_config={"worker_niceness": 0},
+    )
+
+
+class BackgroundRay:
+    """``init_local_ray`` on a thread that lives until ``shutdown``."""
+
+    def __init__(self, cpus: int) -> None:
+        self._ready, self._stop = threading.Event(), threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(cpus,), daemon=True)
+        self._thread.start()
+
+    def _run(self, cpus: int) -> None:
+        try:
+            init_local_ray(cpus)
+        except BaseException as error:  # handed to the caller of wait()
+            self._error = error
+        self._ready.set()
+        self._stop.wait()
+
+    def wait(self) -> None:
+        """Block until Ray is up; re-raise what stopped it from starting."""
+        self._ready.wait()
+        if self._error is not None:
+            raise self._error
+
+    def shutdown(self) -> None:
+        self._ready.wait()
+        if ray.is_initialized():
+            ray.shutdown()
+        self._stop.set()
+        self._thread.join(timeout=10)
