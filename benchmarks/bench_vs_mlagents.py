@@ -80,6 +80,7 @@ class Run:
     seed: int
     summaries: list[tuple[float, int, float]] = field(default_factory=list)  # (s, step, reward)
     first_step_s: float | None = None
+    launched_at: float = 0.0  # wall clock of the launch; every figure counts from it
     exit_code: int | None = None
     wall_s: float = 0.0
     leftovers: int = 0
@@ -130,7 +131,7 @@ def run_command(
     """Run until every target level is reached (or the cap), reading summary lines live."""
     tag = uuid.uuid4().hex
     run.log = log
-    started = time.time()
+    started = run.launched_at = time.time()
     process = subprocess.Popen(
         command,
         stdout=subprocess.PIPE,
@@ -222,8 +223,10 @@ def our_run(case: Case, seed: int, build: Path, config: Path, variant: str, work
     ]
     run_command(command, {}, run, case.targets, case.cap_s, signal.SIGINT, work / f"{run_id}.log")
     summary = work / "ours" / run_id / "summary.json"
-    if summary.is_file():
-        run.first_step_s = json.loads(summary.read_text()).get("startup", {}).get("first_step_s")
+    if summary.is_file():  # the moment its first worker's Unity answered
+        first_step = json.loads(summary.read_text()).get("startup", {}).get("first_step_at")
+        if first_step is not None:
+            run.first_step_s = round(first_step - run.launched_at, 2)
     return run
 
 
