@@ -23,6 +23,7 @@ from tensordict import TensorDict
 from learners import checkpoint
 from learners.policies import ActorCritic, NetworkSettings, PolicyFactory, base_name
 from rollout import keys
+from rollout.segments import Segment
 from rollout.specs import spec_from_dict
 
 if TYPE_CHECKING:
@@ -121,11 +122,13 @@ class CentralLearner:
 
     # --- the learner contract -----------------------------------------------------------
 
-    def submit(self, segments: list[TensorDict]) -> tuple[int, int | None]:
-        """Take segments, update behaviors whose data is ready; the newest version and the
-        demand (``rollout/learner_api.py``)."""
+    def submit(self, segments: list[Segment | TensorDict]) -> tuple[int, int | None]:
+        """Take segments (as workers send them, or already TensorDicts), update behaviors
+        whose data is ready; the newest version and the demand (``rollout/learner_api.py``)."""
         started = time.perf_counter()
         for segment in segments:
+            if isinstance(segment, Segment):
+                segment = segment.to_tensordict()
             behavior = segment.get_non_tensor(keys.BEHAVIOR)
             state = self._behavior(behavior, segment.get_non_tensor(keys.SPEC))
             lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])

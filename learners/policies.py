@@ -28,7 +28,6 @@ import torch
 from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
 from torch import nn
 from torch.distributions import Categorical, Normal
-from torchrl.modules import MaskedCategorical
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)
@@ -249,6 +248,8 @@ class ActorCritic(nn.Module):
         logits = torch.split(self.logits(hidden), self.branches, dim=-1)
         if mask is None:
             return [Categorical(logits=lg, validate_args=False) for lg in logits]
+        from torchrl.modules import MaskedCategorical  # learner only: workers never import torchrl
+
         masks = torch.split(mask, self.branches, dim=-1)
         return [MaskedCategorical(logits=lg, mask=m) for lg, m in zip(logits, masks, strict=True)]
 

@@ -21,12 +21,10 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
-import torch
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
-from tensordict import TensorDict
 
 from rollout.ports import PortAllocator
-from rollout.segments import Decisions, SegmentBuilder, allowed_mask
+from rollout.segments import Decisions, Segment, SegmentBuilder, allowed_mask
 from rollout.unity import RECOVERABLE, UnityConfig, UnityInstance
 
 log = logging.getLogger(__name__)
@@ -48,7 +46,7 @@ class Actor(Protocol):
 
 
 ActorFactory = Callable[[str, BehaviorSpec], Actor]  # (behavior name, spec) -> policy
-Weights = dict[str, dict[str, torch.Tensor]]  # behavior -> state_dict
+Weights = dict[str, dict[str, Any]]  # behavior -> state_dict (the factory's actors load it)
 
 
 @dataclass
@@ -121,7 +119,7 @@ class Collector:
 
     def collect(
         self, min_steps: int = 1, max_seconds: float | None = None, max_exchanges: int = 100_000
-    ) -> list[TensorDict]:
+    ) -> list[Segment]:
         """Step Unity until at least ``min_steps`` steps of finished rows are here (or
         ``max_seconds`` passed, or ``max_exchanges``); returns one packed segment per
         behavior that finished rows."""
@@ -129,7 +127,7 @@ class Collector:
             self.start()
         started = time.perf_counter()
         deadline = started + max_seconds if max_seconds is not None else None
-        pieces: dict[str, list[TensorDict]] = {}
+        pieces: dict[str, list[Segment]] = {}
         steps = 0
         for _ in range(max_exchanges):
             try:
@@ -140,9 +138,9 @@ class Collector:
             if steps >= min_steps or (deadline is not None and time.perf_counter() >= deadline):
                 break
         self.metrics.seconds += time.perf_counter() - started
-        return [parts[0] if len(parts) == 1 else torch.cat(parts) for parts in pieces.values()]
+        return [Segment.concat(parts) for parts in pieces.values()]
 
-    def _exchange(self, pieces: dict[str, list[TensorDict]]) -> int:
+    def _exchange(self, pieces: dict[str, list[Segment]]) -> int:
         unity, steps = self.unity, 0
         for behavior, spec in unity.behavior_specs.items():
             builder = self.builders.get(behavior) or self._add_behavior(behavior, spec)
@@ -151,7 +149,7 @@ class Collector:
             finished = builder.collect(self.metrics.env_steps)
             if finished is not None:
                 pieces.setdefault(behavior, []).append(finished)
-                steps += finished.batch_size[0]
+                steps += len(finished)
             if len(decisions):
                 chosen = self._act(behavior, spec, decisions)
                 builder.act(decisions, chosen, self.version)

@@ -1,6 +1,6 @@
 """The contract between rollout workers and a learner (``learners`` implements it).
 
-The service forwards each worker's segments (an ObjectRef to ``list[TensorDict]``, the
+The service forwards each worker's segments (an ObjectRef to ``list[Segment]``, the
 format of docs/batch-format.md) with ``submit``; it keeps at most a few submissions in
 flight, so a slow learner slows collection instead of growing a queue. ``submit`` returns
 the learner's newest weights version, and its demand: how many more steps it wants before
@@ -14,13 +14,12 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from tensordict import TensorDict
-
 from rollout.collector import Weights
+from rollout.segments import Segment
 
 
 class Learner(Protocol):
-    def submit(self, segments: list[TensorDict]) -> tuple[int, int | None]:
+    def submit(self, segments: list[Segment]) -> tuple[int, int | None]:
         """Consume segments; return the newest weights version and the demand."""
         ...
 

@@ -8,8 +8,8 @@ decision one (not done). Each agent fills a row until its episode ends or the ro
 ``horizon`` transitions (ML-Agents' ``time_horizon``), whichever comes first, exactly when
 ML-Agents' agent processor hands a trajectory to its trainer; a row cut at the horizon
 gets ``truncated`` (and ``done``) on its last step, so the learner bootstraps there.
-Finished rows leave packed: one ``[N]`` TensorDict, each row's steps contiguous and in
-order, no padding. An agent silent for ``STALE_FACTOR * gone_after`` exchanges without a
+Finished rows leave packed: one ``[N]`` :class:`Segment`, each row's steps contiguous and
+in order, no padding. An agent silent for ``STALE_FACTOR * gone_after`` exchanges without a
 terminal info has its row cut the same way; an ended agent that does not come back within
 ``gone_after`` exchanges gives its slot up.
 
@@ -19,14 +19,17 @@ per-slot buffers, never a Python loop over agents.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
-from tensordict import TensorDict
 
 from rollout import keys, specs
+
+if TYPE_CHECKING:
+    from tensordict import TensorDict
 
 INITIAL_SLOTS = 16
 STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
@@ -42,6 +45,64 @@ class Decisions:
     log_prob: np.ndarray  # float32 (n, continuous size + branches): one per component
 
 
+@dataclass(frozen=True)
+class Segment:
+    """One behavior's packed trajectories on their way from a worker to the learner: numpy
+    arrays ``[N, ...]`` under the keys of docs/batch-format.md, nested as the learner's
+    TensorDict will be, with the behavior's name and spec. The rollout side needs no torch:
+    importing torch, tensordict and torchrl was most of a worker's start (3 s of 3.5 on 2
+    cores) and of its memory. The learner takes it ``to_tensordict``."""
+
+    behavior: str
+    spec: dict[str, Any]  # specs.spec_to_dict
+    data: Mapping[str, Any]  # key -> array, or -> a mapping of the same kind
+
+    def __len__(self) -> int:
+        return len(self.data[keys.POLICY_VERSION])
+
+    @property
+    def nbytes(self) -> int:
+        sizes: list[int] = []
+        _walk(lambda a: sizes.append(a.nbytes) or a, self.data)
+        return sum(sizes)
+
+    def to_tensordict(self) -> TensorDict:
+        """The learner's view: tensors sharing the arrays' memory (a copy only where Ray's
+        object store handed over read-only arrays), behavior and spec as non-tensors."""
+        import torch
+        from tensordict import TensorDict
+
+        def tensor(array: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(np.require(array, requirements="W"))
+
+        batch = TensorDict(_walk(tensor, self.data), batch_size=[len(self)])
+        batch.set_non_tensor(keys.BEHAVIOR, self.behavior)
+        batch.set_non_tensor(keys.SPEC, self.spec)
+        return batch
+
+    @staticmethod
+    def concat(parts: Sequence[Segment]) -> Segment:
+        """Segments of one behavior, one after the other."""
+        if len(parts) == 1:
+            return parts[0]
+
+        def join(*arrays: np.ndarray) -> np.ndarray:
+            return np.concatenate(arrays)
+
+        first = parts[0]
+        return Segment(first.behavior, first.spec, _walk(join, *(p.data for p in parts)))
+
+
+def _walk(fn: Callable[..., Any], *trees: Mapping[str, Any]) -> dict[str, Any]:
+    """``fn`` on the arrays at the same place in nested mappings of the same shape."""
+    return {
+        key: _walk(fn, *(t[key] for t in trees))
+        if isinstance(value, Mapping)
+        else fn(*(t[key] for t in trees))
+        for key, value in trees[0].items()
+    }
+
+
 @dataclass
 class Counters:
     steps: int = 0  # transitions recorded
@@ -51,7 +112,7 @@ class Counters:
 
 
 class SegmentBuilder:
-    """Builds ``[B, T]`` TensorDict segments for one behavior.
+    """Builds packed :class:`Segment` s for one behavior.
 
     Per exchange: ``observe(decisions, terminals)``, then ``collect()`` for finished rows,
     then ``act(decisions, chosen, policy_version)`` with the policy's choices. Row storage
@@ -248,8 +309,8 @@ class SegmentBuilder:
             f["p_mask"][slots] = allowed_mask(decisions, self._mask_size)
         f["pending"][slots] = True
 
-    def collect(self, env_steps: int = 0) -> TensorDict | None:
-        """Finished rows as one packed ``[N]`` TensorDict, or None when none finished."""
+    def collect(self, env_steps: int = 0) -> Segment | None:
+        """Finished rows as one packed ``[N]`` segment, or None when none finished."""
         f = self._f
         active = f["agent"] >= 0
         length = f["length"]
@@ -266,7 +327,7 @@ class SegmentBuilder:
         f["agent"][gone | silent] = -1
         return batch
 
-    def _rows(self, slots: np.ndarray, env_steps: int) -> TensorDict:
+    def _rows(self, slots: np.ndarray, env_steps: int) -> Segment:
         f = self._f
         lengths = f["length"][slots]
         n = int(lengths.sum())
@@ -280,12 +341,12 @@ class SegmentBuilder:
         cut = ends[~done[ends]]
         done[cut], truncated[cut] = True, True
 
-        def take(name: str, scalar: bool = False) -> torch.Tensor:
-            tensor = torch.from_numpy(f[name][row_of, time])
-            return tensor.unsqueeze(-1) if scalar else tensor
+        def take(name: str, scalar: bool = False) -> np.ndarray:
+            array = f[name][row_of, time]
+            return array[:, None] if scalar else array
 
-        def flag(values: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(values).unsqueeze(-1)
+        def flag(values: np.ndarray) -> np.ndarray:
+            return values[:, None]
 
         action = {}
         if self._continuous:
@@ -298,9 +359,9 @@ class SegmentBuilder:
             keys.LOG_PROB: take("logp"),
             keys.POLICY_VERSION: take("version"),
             keys.GROUP_ID: take("group"),
-            keys.AGENT_ID: torch.from_numpy(f["agent"][row_of]),
-            keys.WORKER: torch.full((n,), self.worker, dtype=torch.int64),
-            keys.ENV_STEPS: torch.full((n,), env_steps, dtype=torch.int64),
+            keys.AGENT_ID: f["agent"][row_of],
+            keys.WORKER: np.full(n, self.worker, np.int64),
+            keys.ENV_STEPS: np.full(n, env_steps, np.int64),
             keys.NEXT: {
                 keys.OBS: {name: take(f"next/{name}") for name, _ in self._sensors},
                 keys.REWARD: take("reward", scalar=True),
@@ -312,11 +373,8 @@ class SegmentBuilder:
         }
         if self._mask_size:
             data[keys.ACTION_MASK] = take("mask")
-        batch = TensorDict(data, batch_size=[n])
-        batch.set_non_tensor(keys.BEHAVIOR, self.behavior)
-        batch.set_non_tensor(keys.SPEC, self._spec_dict)
         self.counters.rows += len(slots)
-        return batch
+        return Segment(self.behavior, self._spec_dict, data)
 
     def drain_episodes(self) -> tuple[np.ndarray, np.ndarray]:
         """Returns and lengths (in decisions) of the episodes finished since the last call."""

@@ -276,7 +276,7 @@ class RolloutService:
         if segments:
             submit = self.learner.submit.remote(ref)
             self._submits.append(submit)
-            self._submit_steps[submit] = sum(s.batch_size[0] for s in segments)
+            self._submit_steps[submit] = sum(len(s) for s in segments)
             self._observe(segments)
         return len(segments)
 
@@ -310,11 +310,11 @@ class RolloutService:
     def _observe(self, segments: list) -> None:
         for segment in segments:
             self.metrics.segments += 1
-            lag = self._version - segment[keys.POLICY_VERSION]
-            if lag.numel():
+            lag = self._version - segment.data[keys.POLICY_VERSION]
+            if lag.size:
                 self.metrics.policy_lag_max = max(self.metrics.policy_lag_max, int(lag.max()))
                 self.metrics.policy_lag_sum += int(lag.sum())
-                self.metrics.policy_lag_count += int(lag.numel())
+                self.metrics.policy_lag_count += int(lag.size)
 
     def run(
         self,

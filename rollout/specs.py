@@ -1,14 +1,15 @@
-"""ML-Agents ``BehaviorSpec`` -> torchrl ``Composite`` specs of one step.
+"""ML-Agents ``BehaviorSpec`` -> torchrl ``Composite`` specs of one step, and the spec as
+plain data (what travels with each segment).
 
 Everything downstream (networks, buffers, validation of emitted segments) is built from
-these specs, never from hard-coded shapes.
+these specs, never from hard-coded shapes. torch and torchrl are imported by the functions
+that build torchrl specs (the learner's side and tests), so workers never load them.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
 from mlagents_envs.base_env import (
     ActionSpec,
     BehaviorSpec,
@@ -16,20 +17,27 @@ from mlagents_envs.base_env import (
     ObservationSpec,
     ObservationType,
 )
-from torchrl.data import Binary, Composite, MultiCategorical, Unbounded
 
 from rollout import keys
 
+if TYPE_CHECKING:
+    from torchrl.data import Composite
+
 
 def observation_spec(spec: BehaviorSpec) -> Composite:
+    import torch
+    from torchrl.data import Composite, Unbounded
+
     return Composite(
         {o.name: Unbounded(o.shape, dtype=torch.float32) for o in spec.observation_specs}
     )
 
 
 def action_spec(spec: BehaviorSpec) -> Composite:
-    """Continuous part: the raw Gaussian sample (Unity clips to [-1, 1]); discrete: one
-    index per branch."""
+    """Continuous part: the raw Gaussian sample; discrete: one index per branch."""
+    import torch
+    from torchrl.data import Composite, MultiCategorical, Unbounded
+
     parts = {}
     if spec.action_spec.continuous_size:
         size = spec.action_spec.continuous_size
@@ -49,6 +57,9 @@ def log_prob_size(spec: BehaviorSpec) -> int:
 
 def step_spec(spec: BehaviorSpec) -> Composite:
     """One step of a segment: what the worker records per decision and its outcome."""
+    import torch
+    from torchrl.data import Binary, Composite, Unbounded
+
     scalar_float = Unbounded((1,), dtype=torch.float32)
     flag = Binary(1, shape=(1,), dtype=torch.bool)
     entries = {

@@ -13,10 +13,9 @@ from __future__ import annotations
 import time
 from collections import Counter
 
-from tensordict import TensorDict
-
 from rollout import keys
 from rollout.collector import Weights
+from rollout.segments import Segment
 
 
 class CountingLearner:
@@ -33,14 +32,13 @@ class CountingLearner:
         self.bytes = 0
         self.versions_seen: Counter[int] = Counter()
 
-    def submit(self, segments: list[TensorDict]) -> tuple[int, int | None]:
+    def submit(self, segments: list[Segment]) -> tuple[int, int | None]:
         for segment in segments:
-            behavior = segment.get_non_tensor(keys.BEHAVIOR)
-            self.steps[behavior] += segment.batch_size[0]
-            self.trajectories[behavior] += int(segment[keys.NEXT, keys.DONE].sum())
-            self.bytes += int(segment.bytes())
-            self.versions_seen.update(segment[keys.POLICY_VERSION].tolist())
-            self.since_bump += segment.batch_size[0]
+            self.steps[segment.behavior] += len(segment)
+            self.trajectories[segment.behavior] += int(segment.data[keys.NEXT][keys.DONE].sum())
+            self.bytes += segment.nbytes
+            self.versions_seen.update(segment.data[keys.POLICY_VERSION].tolist())
+            self.since_bump += len(segment)
         if not segments:
             return self.version, self._wanted()
         self.submissions += 1

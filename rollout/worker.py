@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 
 import ray
-import torch
-from tensordict import TensorDict
 
 from rollout.collector import ActorFactory, Collector, CollectorMetrics, Weights
 from rollout.ports import PortAllocator, PortRange
+from rollout.segments import Segment
 from rollout.unity import UnityConfig
 
 
@@ -31,7 +31,8 @@ class RolloutWorker:
         port_range: PortRange | None = None,
         registry_dir: str | None = None,
     ) -> None:
-        torch.set_num_threads(1)
+        if (torch := sys.modules.get("torch")) is not None:  # a factory that acts with torch
+            torch.set_num_threads(1)  # one CPU per worker
         # Distinct seeds (else two workers replay the same episodes) and player logs.
         unity = dataclasses.replace(
             unity,
@@ -48,7 +49,7 @@ class RolloutWorker:
         published: tuple[int, Weights] | None,
         min_steps: int,
         max_seconds: float | None = None,
-    ) -> list[TensorDict]:
+    ) -> list[Segment]:
         """``published``: the learner's ``weights()`` result, (version, weights), or None
         when this worker already has the newest version."""
         if published is not None:

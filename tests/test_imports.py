@@ -70,3 +70,23 @@ def test_cli_help_lists_commands():
     )
     assert result.returncode == 0
     assert "doctor" in result.stdout
+
+
+def test_a_rollout_worker_loads_neither_tensordict_nor_torchrl():
+    """What a worker process imports: its actor class's module and the policy factory it
+    unpickles. tensordict and torchrl (with torch._dynamo) took most of a worker's start;
+    segments travel as numpy and become TensorDicts in the learner."""
+    script = (
+        "import json, pickle, sys\n"
+        "import rollout.worker\n"
+        "from learners.policies import actor_factory\n"
+        "pickle.loads(pickle.dumps(actor_factory))\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    modules = json.loads(result.stdout.strip().splitlines()[-1])
+    assert "rollout.collector" in modules and "learners.policies" in modules
+    assert [m for m in modules if m.split(".")[0] in ("tensordict", "torchrl")] == []

@@ -10,6 +10,7 @@ from itertools import pairwise
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 
 from learners.policies import actor_factory
 from rollout import keys
@@ -64,6 +65,11 @@ def check_echo_segment(segment, spec, horizon: int) -> list[tuple[int, int, int,
     return found
 
 
+def collect(collector: Collector, min_steps: int = 1) -> list[TensorDict]:
+    """A collect call's segments as the learner sees them."""
+    return [segment.to_tensordict() for segment in collector.collect(min_steps)]
+
+
 def test_echo_trajectories_are_exact_across_switches_arrivals_and_terminals(allocator):
     horizon = 16
     collector = Collector(
@@ -75,7 +81,7 @@ def test_echo_trajectories_are_exact_across_switches_arrivals_and_terminals(allo
     try:
         steps, behaviors, by_agent = 0, set(), {}
         for _ in range(40):
-            for segment in collector.collect(min_steps=20):
+            for segment in collect(collector, 20):
                 behavior = segment.get_non_tensor(keys.BEHAVIOR)
                 behaviors.add(behavior)
                 spec = collector.unity.behavior_specs[behavior]
@@ -117,7 +123,7 @@ def test_killed_player_restarts_and_no_partial_row_is_emitted(allocator):
         os.kill(old_pid, signal.SIGKILL)
         segments = []
         for _ in range(10):
-            segments += collector.collect()
+            segments += collect(collector)
         metrics = collector.snapshot()
         assert metrics.restarts == 1 and collector.unity.port != old_port
         assert metrics.dropped_steps > 0
@@ -133,7 +139,7 @@ def test_3dball_rows_are_cut_at_the_horizon_and_weights_versions_are_stamped(all
         UnityConfig("unitysim:3DBall", seed=1), actor_factory, horizon=10, allocator=allocator
     )
     try:
-        first = collector.collect(min_steps=1)
+        first = collect(collector, 1)
         # 12 agents in step from the reset: the first rows are the 12 cut at 10 steps.
         assert len(first) == 1 and first[0].batch_size == torch.Size([120])
         assert [p.stop - p.start for p in trajectories(first[0])] == [10] * 12
@@ -148,7 +154,7 @@ def test_3dball_rows_are_cut_at_the_horizon_and_weights_versions_are_stamped(all
         # statistics below.
         fresh = []
         while sum(segment.batch_size[0] for segment in fresh) < 480:
-            for segment in collector.collect(min_steps=100):
+            for segment in collect(collector, 100):
                 fresh.append(segment[segment[keys.POLICY_VERSION] == 3])
         # Zero weights: the Gaussian mean is 0 and its std 1 for every agent.
         actions = torch.cat([s[keys.ACTION, keys.CONTINUOUS] for s in fresh])

@@ -41,7 +41,7 @@ def start_worker(ray, registry: str, build: str, horizon: int = 16, **unity):
 def collect(ray, worker, times: int) -> list:
     segments = []
     for _ in range(times):
-        segments += ray.get(worker.collect.remote(0, None, 1))
+        segments += [s.to_tensordict() for s in ray.get(worker.collect.remote(0, None, 1))]
     return segments
 
 
