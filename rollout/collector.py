@@ -33,8 +33,9 @@ log = logging.getLogger(__name__)
 class Actor(Protocol):
     """What a worker needs of a policy (``learners.policies.RolloutActor`` is one): numpy
     observations per sensor and an allowed-mask in; continuous [n, c], discrete
-    [n, branches] and log-probabilities [n] out; and the continuous action Unity gets for
-    a chosen one (the policy's convention: ML-Agents' scale the Gaussian's sample)."""
+    [n, branches] and log-probabilities [n, c + branches] (one per action component) out;
+    and the continuous action Unity gets for a chosen one (the policy's convention:
+    ML-Agents' scale the Gaussian's sample)."""
 
     def act(
         self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
