@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -56,10 +57,15 @@ def one_seed(args: argparse.Namespace) -> dict:
     summaries: list[tuple[int, float]] = []
     returns: list[float] = []
     next_summary, done = every, False
+    _, wanted = learner.submit([])
     try:
         while not done:
             for collector in collectors:
-                version, _ = learner.submit(collector.collect(min_steps=args.chunk))
+                # as the service does: no more than the next on-policy update wants
+                share = args.chunk if wanted is None else math.ceil(wanted / len(collectors))
+                version, wanted = learner.submit(
+                    collector.collect(min_steps=min(share, args.chunk))
+                )
                 for other in collectors:
                     if version > other.version:
                         other.load_weights(*learner.weights())
@@ -88,7 +94,13 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=2, help="Unity instances")
     parser.add_argument("--max-steps", type=int, default=500_000)
     parser.add_argument("--summary-freq", type=int, default=0, help="0: the config's")
-    parser.add_argument("--chunk", type=int, default=1000, help="steps per collect call")
+    parser.add_argument(
+        "--chunk",
+        type=int,
+        default=1000,
+        help="steps per collect call, at most (fewer when "
+        "the learner's next update wants fewer, as in the service)",
+    )
     parser.add_argument("--parallel", type=int, default=2, help="seeds run at a time")
     parser.add_argument("--json", help="write the results here too")
     parser.add_argument("--seed", type=int, help=argparse.SUPPRESS)  # one seed, in-process
