@@ -131,6 +131,8 @@ def main() -> int:
             ]
             for child in children:
                 out, _ = child.communicate()
+                if child.returncode != 0 or not out.strip():
+                    raise SystemExit(f"bench_steps: a seed's run failed (exit {child.returncode})")
                 result = json.loads(out.strip().splitlines()[-1])
                 print(
                     f"seed {result['seed']}: target {args.target} at step {result['reached']}",

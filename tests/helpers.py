@@ -77,3 +77,54 @@ def trajectories(segment: TensorDict) -> list[slice]:
     assert ends and ends[-1] == len(done) - 1, "every trajectory ends with done"
     starts = [0] + [end + 1 for end in ends[:-1]]
     return [slice(start, end + 1) for start, end in zip(starts, ends, strict=True)]
+
+
+def train_in_process(
+    config: Path,
+    env: str,
+    behavior: str,
+    *,
+    step_budget: int,
+    goal: float,
+    safety_stop_s: float,
+    ports: PortRange,
+    registry: Path,
+    chunk: int = 768,
+    min_episodes: int = 10,
+    seed: int = 0,
+) -> tuple[float, list[tuple[int, int, float]]]:
+    """Train one collector and the learner in this process until the mean return over
+    ``min_episodes`` or more recent episodes reaches ``goal`` or ``step_budget`` agent
+    steps are spent; (best mean return, history of (steps, episodes, best)). Each collect
+    asks no more than the learner's next on-policy update wants, as the service does. The
+    wall-time stop only ends a hung run: a busy machine is slower, same steps."""
+    from learners.config import load_config
+    from learners.learner import CentralLearner
+    from rollout.collector import Collector
+    from rollout.unity import UnityConfig
+
+    torch.manual_seed(seed)
+    learner = CentralLearner(load_config(config), seed=seed)
+    collector = Collector(
+        UnityConfig(env, seed=seed + 1),
+        learner.factory,
+        horizon=learner.config.for_behavior(behavior).time_horizon,
+        allocator=PortAllocator(ports, registry),
+    )
+    started, best, history = time.monotonic(), float("-inf"), []
+    _, wanted = learner.submit([])
+    try:
+        while collector.metrics.agent_steps < step_budget and best < goal:
+            assert time.monotonic() - started < safety_stop_s, f"safety stop: {history}"
+            ask = chunk if wanted is None else min(chunk, wanted)
+            version, wanted = learner.submit(collector.collect(min_steps=ask))
+            if version > collector.version:
+                collector.load_weights(*learner.weights())
+            stats = collector.snapshot().behaviors.get(behavior)
+            if stats is not None and stats.episodes >= min_episodes:  # recent episodes
+                best = max(best, stats.return_sum / stats.episodes)
+                history.append((collector.metrics.agent_steps, stats.episodes, best))
+                stats.return_sum, stats.episodes = 0.0, 0
+    finally:
+        collector.close()
+    return best, history

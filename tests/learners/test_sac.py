@@ -5,7 +5,6 @@ and a short in-process run on unitysim 3DBall that clearly beats the random poli
 from __future__ import annotations
 
 import io
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -14,10 +13,12 @@ import pytest
 import torch
 
 from learners.config import defaults, load_config
-from learners.learner import CentralLearner, policy_factory
+from learners.learner import policy_factory
 from learners.policies import ActorCritic, NetworkSettings, RolloutActor
 from learners.sac import MAX_GRADIENT_STEPS, SAC, next_mask
 from rollout import keys
+from rollout.ports import PortRange
+from tests.helpers import train_in_process
 from tests.learners.fakes import segment, vector_spec
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
@@ -193,29 +194,15 @@ def test_sac_learns_3dball_in_process(tmp_path):
     """SAC on unitysim 3DBall within a budget of agent steps: mean return well above
     random (about 2). The wall-time cap only stops a hung run; a busy machine is slower
     but takes the same number of steps."""
-    from rollout.collector import Collector
-    from rollout.ports import PortAllocator, PortRange
-    from rollout.unity import UnityConfig
-
-    torch.manual_seed(0)
-    learner = CentralLearner(load_config(CONFIG_DIR / "3DBall_sac.yaml"))
-    allocator = PortAllocator(PortRange(24600, 24649), tmp_path / "ports")
-    collector = Collector(
-        UnityConfig("unitysim:3DBall", seed=1), learner.factory, horizon=64, allocator=allocator
+    best, history = train_in_process(
+        CONFIG_DIR / "3DBall_sac.yaml",
+        "unitysim:3DBall",
+        "3DBall?team=0",
+        step_budget=SAC_STEP_BUDGET,
+        goal=10,
+        safety_stop_s=SAFETY_STOP_S,
+        ports=PortRange(24600, 24649),
+        registry=tmp_path / "ports",
     )
-    started, best, history = time.monotonic(), 0.0, []
-    try:
-        while collector.metrics.agent_steps < SAC_STEP_BUDGET and best < 10:
-            assert time.monotonic() - started < SAFETY_STOP_S, f"safety stop: {history}"
-            version, _ = learner.submit(collector.collect(min_steps=768))
-            if version > collector.version:
-                collector.load_weights(*learner.weights())
-            stats = collector.snapshot().behaviors.get("3DBall?team=0")
-            if stats is not None and stats.episodes >= 10:  # mean over recent episodes
-                best = max(best, stats.return_sum / stats.episodes)
-                history.append((collector.metrics.agent_steps, stats.episodes, best))
-                stats.return_sum, stats.episodes = 0.0, 0
-    finally:
-        collector.close()
     print("(agent steps, episodes, best mean return):", history)
     assert best >= 10, f"(agent steps, episodes, best mean return): {history}"
