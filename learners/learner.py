@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
-from tensordict import TensorDict
 
 from learners import checkpoint
 from learners.policies import ActorCritic, NetworkSettings, PolicyFactory, base_name
@@ -26,7 +25,9 @@ from rollout import keys
 from rollout.segments import Segment
 from rollout.specs import spec_from_dict
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # tensordict only where segments arrive: the driver never loads it
+    from tensordict import TensorDict
+
     from learners.config import RunConfig, TrainerSettings
 
 

@@ -175,11 +175,17 @@ class SAC:
             self.q_out = "action_value"
         self.loss.make_value_estimator(gamma=settings.gamma)  # TD(0): r + gamma V(s')
         self.target_update = SoftUpdate(self.loss, tau=h.tau)
-        self.actor_optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate)
-        self.critic_optimizer = torch.optim.Adam(
-            list(self.loss.qvalue_network_params.values(True, True)), lr=h.learning_rate
+        self.actor_optimizer = torch.optim.Adam(
+            network.parameters(), lr=h.learning_rate, fused=True
         )
-        self.alpha_optimizer = torch.optim.Adam([self.loss.log_alpha], lr=h.learning_rate)
+        self.critic_optimizer = torch.optim.Adam(
+            list(self.loss.qvalue_network_params.values(True, True)),
+            lr=h.learning_rate,
+            fused=True,
+        )
+        self.alpha_optimizer = torch.optim.Adam(
+            [self.loss.log_alpha], lr=h.learning_rate, fused=True
+        )
         self.optimizers = (self.actor_optimizer, self.critic_optimizer, self.alpha_optimizer)
         # compilable: plain counters, not multiprocessing.Value (this buffer never leaves
         # the learner process, and mp.Value would start a resource-tracker process)
@@ -254,11 +260,15 @@ class SAC:
             for group in optimizer.param_groups:
                 group["lr"] = lr
         totals: dict[str, float] = {}
-        for _ in range(count):
-            for key, value in self.gradient_step(self.buffer.sample()).items():
+        for index in range(count):
+            batch = self.buffer.sample()
+            for key, value in self.gradient_step(batch).items():
                 totals[key] = totals.get(key, 0.0) + value
+            if index == count - 1:  # each Q's own loss costs two more passes: one batch
+                totals.update(self.q_losses(batch))
         self.gradient_steps += count
         mean = {key: value / max(count, 1) for key, value in totals.items()}
+        mean.update({key: totals[key] for key in ("q1", "q2", "estimate") if key in totals})
         return {
             "Losses/Policy Loss": mean.get("policy", 0.0),
             "Losses/Q1 Loss": mean.get("q1", 0.0),
@@ -283,18 +293,14 @@ class SAC:
         for optimizer in self.optimizers:
             optimizer.step()
         self.target_update.step()
-        q1, q2, estimate = self._q_losses(batch)
         return {
             "policy": float(losses["loss_actor"].detach()),
             "alpha_loss": float(losses["loss_alpha"].detach()),
             "entropy": float(losses["entropy"]),
-            "q1": float(q1),
-            "q2": float(q2),
-            "estimate": float(estimate),
         }
 
     @torch.no_grad()
-    def _q_losses(self, batch: TensorDict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def q_losses(self, batch: TensorDict) -> dict[str, float]:
         """Each Q network's squared TD error on the batch just trained on (torchrl reports
         their sum), and the mean Q of the stored actions."""
         target = self.loss.last_target
@@ -307,7 +313,11 @@ class SAC:
                 q = q.gather(-1, batch[ACTION].unsqueeze(-1))
             predictions.append(q.squeeze(-1))
         q1, q2 = ((q - target).square().mean() for q in predictions)
-        return q1, q2, (predictions[0] + predictions[1]).mean() / 2
+        return {
+            "q1": float(q1),
+            "q2": float(q2),
+            "estimate": float((predictions[0] + predictions[1]).mean() / 2),
+        }
 
     # --- checkpoints --------------------------------------------------------------------
 

@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("rollout", "learners", "unitysim")
 
@@ -72,21 +74,31 @@ def test_cli_help_lists_commands():
     assert "doctor" in result.stdout
 
 
-def test_a_rollout_worker_loads_neither_tensordict_nor_torchrl():
-    """What a worker process imports: its actor class's module and the policy factory it
-    unpickles. tensordict and torchrl (with torch._dynamo) took most of a worker's start;
-    segments travel as numpy and become TensorDicts in the learner."""
-    script = (
-        "import json, pickle, sys\n"
-        "import rollout.worker\n"
-        "from learners.policies import actor_factory\n"
-        "pickle.loads(pickle.dumps(actor_factory))\n"
-        "print(json.dumps(sorted(sys.modules)))\n"
-    )
+WORKER = (  # its actor class's module and the policy factory it unpickles
+    "import pickle\n"
+    "import rollout.worker\n"
+    "from learners.policies import actor_factory\n"
+    "pickle.loads(pickle.dumps(actor_factory))\n"
+)
+DRIVER = "import rollout.cli, rollout.train\n"  # `unity-rollout train`, before the learner
+
+
+@pytest.mark.parametrize(
+    ("process", "script", "expected"),
+    [
+        ("worker", WORKER, ("rollout.collector", "learners.policies")),
+        ("driver", DRIVER, ("rollout.service", "learners.learner")),
+    ],
+)
+def test_workers_and_the_driver_load_neither_tensordict_nor_torchrl(process, script, expected):
+    """tensordict and torchrl (with torch._dynamo) took most of a worker's start, and a
+    second of the driver's CPU while Ray starts; segments travel as numpy and become
+    TensorDicts in the learner's process only."""
+    script = f"import json, sys\n{script}print(json.dumps(sorted(sys.modules)))\n"
     result = subprocess.run(
         [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120
     )
     assert result.returncode == 0, result.stderr[-3000:]
     modules = json.loads(result.stdout.strip().splitlines()[-1])
-    assert "rollout.collector" in modules and "learners.policies" in modules
+    assert all(name in modules for name in expected), process
     assert [m for m in modules if m.split(".")[0] in ("tensordict", "torchrl")] == []
