@@ -158,20 +158,22 @@ def run_command(
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    done.wait(cap_s)
-    if process.poll() is None:
-        os.killpg(process.pid, stop_signal)  # graceful: the trainer stops its players
-        try:
-            process.wait(60)
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait()
-    reader.join(10)
-    run.exit_code, run.wall_s = process.returncode, time.time() - started
-    left = tagged(tag)
-    run.leftovers = len(left)
-    for leftover in left:
-        leftover.kill()
+    try:
+        done.wait(cap_s)
+    finally:  # also on Ctrl-C: the run is in its own session, so stop it here
+        if process.poll() is None:
+            os.killpg(process.pid, stop_signal)  # graceful: the trainer stops its players
+            try:
+                process.wait(60)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait()
+        reader.join(10)
+        run.exit_code, run.wall_s = process.returncode, time.time() - started
+        left = tagged(tag)
+        run.leftovers = len(left)
+        for leftover in left:
+            leftover.kill()
 
 
 def anchor_run(case: Case, seed: int, build: Path, anchor: Path, work: Path, port: int) -> Run:
