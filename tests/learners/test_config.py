@@ -130,7 +130,7 @@ def test_every_unitysim_env_has_a_config() -> None:
 def test_shipped_3dball_values() -> None:
     ball = load_config(config_for_env("unitysim:3DBall")).for_behavior("3DBall?team=0")
     h = ball.hyperparameters
-    assert (h.batch_size, h.buffer_size, h.learning_rate, h.num_epoch) == (256, 2400, 3e-4, 3)
+    assert (h.batch_size, h.buffer_size, h.learning_rate, h.num_epoch) == (256, 2400, 1e-3, 3)
     assert (h.beta, h.epsilon, h.lambd, h.max_policy_lag) == (1e-3, 0.2, 0.95, 2)
     assert ball.network_settings == NetworkSettings(hidden_units=64, num_layers=2, normalize=True)
     assert (ball.gamma, ball.time_horizon, ball.max_steps) == (0.99, 64, 300_000)
