@@ -33,7 +33,7 @@ from rollout import keys
 from rollout.collector import ActorFactory, CollectorMetrics
 from rollout.ports import PortRange
 from rollout.unity import UnityConfig
-from rollout.worker import RolloutWorker
+from rollout.worker import RolloutWorker, WeightsLost
 
 log = logging.getLogger(__name__)
 
@@ -253,6 +253,10 @@ class RolloutService:
             segments = ray.get(ref)
         except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
             cause = getattr(error, "cause", None) or error
+            if isinstance(cause, WeightsLost):  # restarted while idle: resend the weights
+                self._count_failure(index, error)
+                self._idle.add(index)
+                return 0
             raise RolloutError(f"worker {index}: {_last_line(cause)}") from None
         except ActorUnavailableError as error:  # died, and Ray is bringing it back
             now = time.perf_counter()
@@ -280,7 +284,7 @@ class RolloutService:
             self._observe(segments)
         return len(segments)
 
-    def _count_failure(self, index: int, error: RayActorError) -> None:
+    def _count_failure(self, index: int, error: Exception) -> None:
         """A worker died: count it, end the run if it keeps dying, else let Ray restart it."""
         self.metrics.worker_restarts += 1
         self._failures[index] += 1

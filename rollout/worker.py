@@ -20,6 +20,10 @@ from rollout.segments import Segment
 from rollout.unity import UnityConfig
 
 
+class WeightsLost(RuntimeError):
+    """This worker lacks the weights the service sent it: Ray restarted it in between."""
+
+
 @ray.remote(num_cpus=1)
 class RolloutWorker:
     def __init__(
@@ -51,7 +55,10 @@ class RolloutWorker:
         max_seconds: float | None = None,
     ) -> list[Segment]:
         """``published``: the learner's ``weights()`` result, (version, weights), or None
-        when this worker already has the newest version."""
+        when this worker already has the newest version. A restart that no call saw (the
+        worker died while idle) shows here: the service would otherwise never resend weights."""
+        if published is None and self.collector.version < version:
+            raise WeightsLost(f"worker has version {self.collector.version}, sent {version}")
         if published is not None:
             self.collector.load_weights(*published)
         return self.collector.collect(min_steps, max_seconds)

@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 import os
 import signal
+import time
 
 import psutil
 import pytest
 import torch
+from ray.exceptions import ActorUnavailableError, RayTaskError
 
 from learners.policies import actor_factory
 from rollout import keys
@@ -17,7 +19,7 @@ from rollout.service import RolloutError, RolloutService, ServiceConfig
 from rollout.specs import step_spec
 from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
-from rollout.worker import RolloutWorker
+from rollout.worker import RolloutWorker, WeightsLost
 from tests.helpers import trajectories, wait_gone
 
 pytestmark = pytest.mark.integration
@@ -248,3 +250,30 @@ def test_a_worker_whose_unity_keeps_failing_ends_the_run_with_its_cause(ray_sess
         pytest.raises(RolloutError, match=r"worker 0: .*restart budget of 1 spent"),
     ):
         service.run(seconds=60)
+
+
+def test_a_worker_restarted_while_idle_asks_for_the_weights_again(ray_session, registry):
+    """No call saw the death, so only the worker can tell that its weights are gone."""
+    worker = RolloutWorker.options(num_cpus=0.5, max_restarts=1).remote(
+        0, UnityConfig("unitysim:3DBall"), actor_factory, 16, PORTS, registry
+    )
+    try:
+        assert ray_session.get(worker.collect.remote(1, (1, {}), 1))
+        assert ray_session.get(worker.collect.remote(1, None, 1)), "version 1 is loaded"
+        old = ray_session.get(worker.identity.remote())
+        os.kill(old["pid"], signal.SIGKILL)
+        assert wait_gone(old["player_pid"], 5.0)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:  # back once it answers, with its new player
+            try:
+                ray_session.get(worker.identity.remote(), timeout=30)
+                break
+            except ActorUnavailableError:
+                time.sleep(0.5)
+        with pytest.raises(RayTaskError) as caught:
+            ray_session.get(worker.collect.remote(1, None, 1), timeout=120)
+        assert isinstance(caught.value.cause, WeightsLost)
+        assert ray_session.get(worker.collect.remote(1, (1, {}), 1)), "resent weights: it acts"
+        assert ray_session.get(worker.identity.remote())["pid"] != old["pid"]
+    finally:
+        stop_worker(ray_session, worker)
