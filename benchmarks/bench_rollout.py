@@ -26,7 +26,7 @@ import torch
 from machine import machine  # benchmarks/machine.py
 from mlagents_envs.environment import UnityEnvironment
 
-from learners.policies import actor_factory
+from learners.acting import actor_factory
 from rollout.collector import Collector
 from rollout.ports import PortAllocator
 from rollout.unity import UnityConfig

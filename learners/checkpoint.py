@@ -22,7 +22,8 @@ from typing import Any
 
 import torch
 
-from learners.policies import ActorCritic, NetworkSettings
+from learners.acting import NetworkSettings
+from learners.policies import ActorCritic
 from rollout.specs import spec_from_dict, spec_to_dict
 
 __all__ = ["latest", "load", "networks", "save", "spec_from_dict", "spec_to_dict"]

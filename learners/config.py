@@ -28,7 +28,7 @@ from typing import Any
 
 import yaml
 
-from learners.policies import NetworkSettings, base_name
+from learners.acting import NetworkSettings, base_name
 
 logger = logging.getLogger(__name__)
 

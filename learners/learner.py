@@ -17,10 +17,12 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
 import torch
 
 from learners import checkpoint
-from learners.policies import ActorCritic, NetworkSettings, PolicyFactory, base_name
+from learners.acting import NetworkSettings, PolicyFactory, base_name
+from learners.policies import ActorCritic, numpy_state
 from rollout import keys
 from rollout.segments import Segment
 from rollout.specs import spec_from_dict
@@ -146,8 +148,9 @@ class CentralLearner:
         wants = [w for s in self.behaviors.values() if (w := s.algorithm.wanted()) is not None]
         return min(wants) if wants else None
 
-    def weights(self) -> tuple[int, dict[str, dict[str, torch.Tensor]]]:
-        return self.version, {name: s.network.state_dict() for name, s in self.behaviors.items()}
+    def weights(self) -> tuple[int, dict[str, dict[str, np.ndarray]]]:
+        """Numpy weights: a worker loads them without importing torch."""
+        return self.version, {name: numpy_state(s.network) for name, s in self.behaviors.items()}
 
     # --- internals ----------------------------------------------------------------------
 

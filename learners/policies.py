@@ -7,8 +7,9 @@ layer, the Gaussian mean head at gain 0.2, discrete heads at 0.1, the value head
 Xavier-uniform, log-std 0). Heads for continuous actions (a Gaussian whose raw sample is
 stored; Unity receives ``clamp(a, -3, 3) / 3``, as from mlagents-learn), for each discrete
 branch (a masked categorical: masked actions have probability zero), and for the value.
-Plain torch: no Ray, so the learner side is testable in-process; the rollout workers get
-a CPU copy through ``actor_factory``.
+Plain torch: no Ray, so the learner side is testable in-process. Rollout workers act
+with ``learners.acting`` (numpy, no torch) and come here only for images and goals
+(``TorchActor``).
 
 SAC networks (as ML-Agents builds them) set ``tanh_squash``: the action sent and stored is
 ``tanh(u)`` of the Gaussian sample ``u``, its log-probability carries the tanh Jacobian
@@ -19,37 +20,29 @@ correction; and ``conditional_sigma``: the log-std comes from a head on the trun
 from __future__ import annotations
 
 import math
-import zlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
+from mlagents_envs.base_env import BehaviorSpec
 from torch import nn
 from torch.distributions import Categorical, Normal
 
+from learners.acting import (
+    ACTION_CLIP,
+    LOG_STD_MAX,
+    LOG_STD_MIN,
+    NORM_CLIP,
+    NetworkSettings,
+    encoder_width,
+    goal_sensors,
+    to_unity,
+    trunk_input_width,
+)
+
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)
-LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # conditional_sigma clamp (ML-Agents' range)
-ACTION_CLIP = 3.0  # unsquashed samples reach Unity as clamp(a, -3, 3) / 3 (ML-Agents)
 SQUASH_EPS = 1e-6  # stored squashed actions are clamped to +-(1 - eps) before atanh
-
-
-@dataclass(frozen=True)
-class NetworkSettings:
-    """ML-Agents ``network_settings``: hidden units and layers of the shared trunk."""
-
-    hidden_units: int = 128
-    num_layers: int = 2
-    normalize: bool = False  # running mean/variance normalization of vector observations
-    # "hyper": goal signals (ObservationType.GOAL_SIGNAL) condition the other features
-    # multiplicatively (one set of trunk weights per goal dimension, what ML-Agents'
-    # hypernetwork achieves); "none": goal signals are ordinary inputs.
-    goal_conditioning_type: str = "hyper"
-    # Not config keys: set by the learner's policy factory for SAC behaviors.
-    tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
-    conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter
 
 
 def tanh_log_det(u: torch.Tensor) -> torch.Tensor:
@@ -65,7 +58,7 @@ class RunningNorm(nn.Module):
     Only the learner calls ``update``; acting only reads.
     """
 
-    def __init__(self, size: int, clip: float = 5.0) -> None:
+    def __init__(self, size: int, clip: float = NORM_CLIP) -> None:
         super().__init__()
         self.clip = clip
         self.register_buffer("count", torch.tensor(1e-4, dtype=torch.float64))
@@ -127,13 +120,6 @@ class SensorEncoder(nn.Module):
         return self.net(x)
 
 
-def _is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
-    return (
-        settings.goal_conditioning_type == "hyper"
-        and observation.observation_type == ObservationType.GOAL_SIGNAL
-    )
-
-
 def linear(width: int, out: int, gain: float = 1.0, xavier: bool = False) -> nn.Linear:
     """A linear layer initialized as ML-Agents' ``linear_layer``: zero bias, weights from
     ``kaiming_normal`` for a linear layer (std 1/sqrt(fan in)) or ``xavier_uniform``,
@@ -166,12 +152,11 @@ class ActorCritic(nn.Module):
         self.encoders = nn.ModuleList(
             SensorEncoder(o.shape, settings.normalize) for o in spec.observation_specs
         )
-        sizes = [e.size for e in self.encoders]
-        goals = [i for i, o in enumerate(spec.observation_specs) if _is_goal(o, settings)]
-        goal_size = sum(sizes[i] for i in goals)
-        other_size = sum(sizes) - goal_size
-        self.goal_sensors = goals if goal_size and other_size else []
-        encoded = other_size * goal_size + goal_size if self.goal_sensors else sum(sizes)
+        self.goal_sensors = goal_sensors(spec, settings)
+        encoded = trunk_input_width(spec, settings)
+        assert [e.size for e in self.encoders] == [
+            encoder_width(tuple(o.shape)) for o in spec.observation_specs
+        ]
         # Separate policy and value trunks over shared encoders (ML-Agents' default,
         # shared_critic: false): the value loss does not pull on the policy's features.
         self.trunk = _mlp(encoded, settings)
@@ -327,150 +312,43 @@ class ActorCritic(nn.Module):
         return torch.cat(log_probs, dim=-1), entropy, self.state_value(obs)
 
 
-class RolloutActor:
-    """The acting half of an :class:`ActorCritic`, for rollout workers: numpy in and out.
+class TorchActor:
+    """A worker's actor for behaviors the numpy one does not cover (images, goal
+    conditioning): the torch network, numpy in and out. Loads numpy or torch weights."""
 
-    For vector-only behaviors it runs the trunk and heads in numpy on a mirror of the
-    weights, refreshed on every ``load_state_dict``: a tiny MLP costs less in numpy than
-    torch's per-op dispatch (27 µs against 85 µs for 3DBall's 12 agents). Behaviors with
-    images use the torch network. Same law as ``ActorCritic.act``: Gaussian samples with
-    their log-probabilities, Gumbel-max over masked log-softmax per discrete branch.
-    """
-
-    def __init__(self, network: ActorCritic, seed: int | None = None) -> None:
+    def __init__(self, network: ActorCritic) -> None:
         self.network = network
-        self.rng = np.random.default_rng(seed)
-        self._layers: list[tuple[np.ndarray, np.ndarray]] | None = None
-        self._refresh()
 
-    def state_dict(self) -> dict[str, torch.Tensor]:
-        return self.network.state_dict()
-
-    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
-        self.network.load_state_dict(state)
-        self._refresh()
+    def load_state_dict(self, state: Mapping[str, object]) -> None:
+        self.network.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
 
     def to_unity(self, continuous: np.ndarray) -> np.ndarray:
-        """The continuous action Unity receives (``ActorCritic.unity_action`` in numpy)."""
-        if self.network.settings.tanh_squash:
-            return continuous
-        return np.clip(continuous, -ACTION_CLIP, ACTION_CLIP) / ACTION_CLIP
-
-    def _refresh(self) -> None:
-        net = self.network
-        if net.goal_sensors or any(isinstance(e.net, nn.Sequential) for e in net.encoders):
-            # a CNN or goal conditioning: use torch
-            self._layers = None
-            return
-
-        def numpy(linear: nn.Linear) -> tuple[np.ndarray, np.ndarray]:
-            weight = linear.weight.detach().numpy().T.astype(np.float32)
-            return np.ascontiguousarray(weight), linear.bias.detach().numpy().astype(np.float32)
-
-        self._norms = [
-            (
-                e.norm.mean.numpy().astype(np.float32),
-                (1.0 / np.sqrt(e.norm.var.numpy() + 1e-8)).astype(np.float32),
-                e.norm.clip,
-            )
-            if e.norm is not None
-            else None
-            for e in net.encoders
-        ]
-        self._layers = [numpy(m) for m in net.trunk if isinstance(m, nn.Linear)]
-        self._mean = numpy(net.mean) if net.mean is not None else None
-        self._logits = numpy(net.logits) if net.logits is not None else None
-        self._log_std = (
-            net.log_std.detach().numpy().astype(np.float32) if net.log_std is not None else None
-        )
-        self._log_std_head = numpy(net.log_std_head) if net.log_std_head is not None else None
+        return to_unity(continuous, self.network.settings)
 
     def act(
         self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(continuous [n, c] float32, discrete [n, branches] int64, log-probs
-        [n, c + branches] float32), as ``ActorCritic.act``."""
-        if self._layers is None:
-            tensors = {name: torch.from_numpy(value) for name, value in obs.items()}
-            torch_mask = torch.from_numpy(mask) if mask is not None else None
-            continuous, discrete, log_prob = self.network.act(tensors, torch_mask)
-            return continuous.numpy(), discrete.numpy(), log_prob.numpy()
-        net = self.network
-        n = len(next(iter(obs.values())))
-        parts = []
-        for name, norm in zip(net.sensor_names, self._norms, strict=True):
-            part = obs[name].reshape(n, -1)
-            if norm is not None:
-                part = np.clip((part - norm[0]) * norm[1], -norm[2], norm[2])
-            parts.append(part)
-        hidden = np.concatenate(parts, axis=1)
-        for weight, bias in self._layers:
-            hidden = hidden @ weight + bias
-            hidden *= 0.5 * (1.0 + np.tanh(0.5 * hidden))  # Swish: x sigmoid(x), no overflow
-        log_probs = [np.zeros((n, 0), np.float32)]
-        continuous = np.zeros((n, 0), np.float32)
-        if self._mean is not None:
-            mean = hidden @ self._mean[0] + self._mean[1]
-            if self._log_std_head is not None:
-                log_std = hidden @ self._log_std_head[0] + self._log_std_head[1]
-                log_std = np.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
-            else:
-                assert self._log_std is not None
-                log_std = self._log_std
-            noise = self.rng.standard_normal(mean.shape, dtype=np.float32)
-            continuous = mean + noise * np.exp(log_std)
-            gaussian = -0.5 * noise * noise - log_std - _HALF_LOG_2PI
-            if net.settings.tanh_squash:  # as ActorCritic.act: Jacobian, then squash
-                gaussian -= 2.0 * (_LOG_2 - continuous - np.logaddexp(0.0, -2.0 * continuous))
-                continuous = np.tanh(continuous)
-            log_probs.append(gaussian)
-        discrete = np.zeros((n, 0), np.int64)
-        if self._logits is not None:
-            logits = hidden @ self._logits[0] + self._logits[1]
-            if mask is not None:
-                logits = np.where(mask, logits, -np.inf)
-            picks, offset = [], 0
-            for size in net.branches:
-                branch = logits[:, offset : offset + size]
-                offset += size
-                branch_logp = branch - branch.max(-1, keepdims=True)
-                branch_logp -= np.log(np.exp(branch_logp).sum(-1, keepdims=True))
-                gumbel = -np.log(self.rng.exponential(size=branch.shape))
-                pick = (branch_logp + gumbel).argmax(-1)
-                log_probs.append(branch_logp[np.arange(n), pick, None])
-                picks.append(pick)
-            discrete = np.stack(picks, axis=-1).astype(np.int64)
-        log_prob = np.concatenate(log_probs, axis=1).astype(np.float32)
-        return continuous.astype(np.float32), discrete, log_prob
+        tensors = {name: torch.from_numpy(value) for name, value in obs.items()}
+        torch_mask = torch.from_numpy(mask) if mask is not None else None
+        continuous, discrete, log_prob = self.network.act(tensors, torch_mask)
+        return continuous.numpy(), discrete.numpy(), log_prob.numpy()
 
 
-def base_name(behavior: str) -> str:
-    """``3DBall?team=0`` -> ``3DBall``: trainer configs name behaviors without the team."""
-    return behavior.split("?", 1)[0]
+def seeded_network(
+    spec: BehaviorSpec, settings: NetworkSettings, seed: int, initial: Mapping[str, np.ndarray]
+) -> ActorCritic:
+    """An ``ActorCritic`` with ``initial`` weights (``acting.initial_weights``), its CNNs
+    drawn from torch seeded by ``seed``; the caller's random stream is left as it was."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        network = ActorCritic(spec, settings)
+    missing, unexpected = network.load_state_dict(
+        {k: torch.from_numpy(v) for k, v in initial.items()}, strict=False
+    )
+    assert not unexpected and all(".net." in k for k in missing), (missing, unexpected)
+    return network
 
 
-@dataclass(frozen=True)
-class PolicyFactory:
-    """Builds a behavior's network the same way on the learner and in every worker, down
-    to the initial weights (drawn from ``seed`` and the behavior's name): before the first
-    update every worker acts with the very policy the learner will improve, as
-    mlagents-learn's one policy does, so the first update's ratios start at 1.
-
-    Picklable, so the service ships it to workers; ``settings`` is keyed by the behavior
-    name without ``?team=``, as in trainer configs.
-    """
-
-    settings: Mapping[str, NetworkSettings] = field(default_factory=dict)
-    default: NetworkSettings = NetworkSettings()
-    seed: int = 0
-
-    def network(self, behavior: str, spec: BehaviorSpec) -> ActorCritic:
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(zlib.crc32(f"{self.seed}/{behavior}".encode()))
-            return ActorCritic(spec, self.settings.get(base_name(behavior), self.default))
-
-    def __call__(self, behavior: str, spec: BehaviorSpec) -> RolloutActor:
-        return RolloutActor(self.network(behavior, spec))
-
-
-actor_factory = PolicyFactory()  # default networks: what tests and `collect` use
+def numpy_state(network: nn.Module) -> dict[str, np.ndarray]:
+    """A network's weights as numpy copies: what workers load without torch."""
+    return {k: v.detach().cpu().numpy().copy() for k, v in network.state_dict().items()}

@@ -124,7 +124,7 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     import ray
     from rich.console import Console
 
-    from learners.policies import actor_factory
+    from learners.acting import actor_factory
     from rollout.local_ray import init_local_ray
     from rollout.service import RolloutService, ServiceConfig
     from rollout.testing import CountingLearner

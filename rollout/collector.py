@@ -31,7 +31,7 @@ log = logging.getLogger(__name__)
 
 
 class Actor(Protocol):
-    """What a worker needs of a policy (``learners.policies.RolloutActor`` is one): numpy
+    """What a worker needs of a policy (``learners.acting.NumpyActor`` is one): numpy
     observations per sensor and an allowed-mask in; continuous [n, c], discrete
     [n, branches] and log-probabilities [n, c + branches] (one per action component) out;
     and the continuous action Unity gets for a chosen one (the policy's convention:

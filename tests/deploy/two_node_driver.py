@@ -14,7 +14,7 @@ import sys
 import ray
 from ray.util.state import list_actors
 
-from learners.policies import actor_factory
+from learners.acting import actor_factory
 from rollout.ports import PortAllocator
 from rollout.service import RolloutService, ServiceConfig
 from rollout.testing import CountingLearner

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from learners.acting import NetworkSettings
 from learners.config import (
     CONFIG_DIR,
     ConfigError,
@@ -18,7 +19,6 @@ from learners.config import (
     load_config,
     parse_config,
 )
-from learners.policies import NetworkSettings
 
 # ML-Agents' config/ppo/3DBall.yaml, as shipped with ML-Agents
 MLAGENTS_PPO_3DBALL = """\

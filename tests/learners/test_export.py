@@ -14,9 +14,10 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec
 
 from learners import checkpoint
+from learners.acting import ACTION_CLIP, NetworkSettings
 from learners.checkpoint import network_settings_dict, spec_to_dict
 from learners.export import export_checkpoint, export_onnx
-from learners.policies import ACTION_CLIP, ActorCritic, NetworkSettings
+from learners.policies import ActorCritic
 from rollout import cli
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 

@@ -8,18 +8,26 @@ import pytest
 import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
-from learners.policies import (
-    ActorCritic,
+from learners.acting import (
     NetworkSettings,
+    NumpyActor,
     PolicyFactory,
-    RolloutActor,
-    RunningNorm,
+    acts_in_numpy,
+    encoder_width,
 )
+from learners.policies import ActorCritic, RunningNorm, SensorEncoder, TorchActor, numpy_state
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 
 
 def hybrid_spec(*sensors: ObservationSpec) -> BehaviorSpec:
     return BehaviorSpec(list(sensors), ActionSpec(2, (3, 2)))
+
+
+def rollout_actor(network: ActorCritic, seed: int) -> NumpyActor | TorchActor:
+    """What a worker would act with: numpy where it can, else the torch network."""
+    if acts_in_numpy(network.spec, network.settings):
+        return NumpyActor(network.spec, network.settings, numpy_state(network), seed=seed)
+    return TorchActor(network)
 
 
 def observations(spec: BehaviorSpec, n: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -38,7 +46,8 @@ def test_log_probs_agree_with_the_network(sensors, normalize):
     obs = observations(spec, 64)
     if normalize:  # statistics far from the identity, so a mirror that skips them fails
         network.update_normalization({k: torch.from_numpy(v * 3 + 2) for k, v in obs.items()})
-    actor = RolloutActor(network, seed=1)
+    actor = rollout_actor(network, seed=1)
+    assert isinstance(actor, NumpyActor) == (IMAGE not in sensors)
     mask = np.ones((64, 5), bool)
     mask[:, 1] = False  # branch 0, action 1 forbidden
     continuous, discrete, log_prob = actor.act(obs, mask)
@@ -47,7 +56,7 @@ def test_log_probs_agree_with_the_network(sensors, normalize):
     assert log_prob.shape == (64, 4) and log_prob.dtype == np.float32  # 2 dims, 2 branches
     assert not (discrete[:, 0] == 1).any()
     with torch.no_grad():
-        expected, _, _ = actor.network.evaluate(
+        expected, _, _ = network.evaluate(
             {k: torch.from_numpy(v) for k, v in obs.items()},
             torch.from_numpy(continuous),
             torch.from_numpy(discrete),
@@ -59,15 +68,14 @@ def test_log_probs_agree_with_the_network(sensors, normalize):
 def test_discrete_samples_follow_the_masked_softmax():
     spec = BehaviorSpec([VECTOR], ActionSpec(0, (4,)))
     torch.manual_seed(0)
-    actor = RolloutActor(ActorCritic(spec), seed=2)
+    network = ActorCritic(spec)
+    actor = rollout_actor(network, seed=2)
     obs = {"vector": np.repeat(observations(spec, 1)["vector"], 20000, axis=0)}
     mask = np.ones((20000, 4), bool)
     mask[:, 3] = False
     _, discrete, _ = actor.act(obs, mask)
     with torch.no_grad():
-        logits = actor.network.logits(
-            actor.network.features({"vector": torch.from_numpy(obs["vector"][:1])})
-        )
+        logits = network.logits(network.features({"vector": torch.from_numpy(obs["vector"][:1])}))
     probs = torch.softmax(logits.masked_fill(~torch.from_numpy(mask[:1]), float("-inf")), -1)[0]
     frequencies = np.bincount(discrete[:, 0], minlength=4) / 20000
     np.testing.assert_allclose(frequencies, probs.numpy(), atol=0.015)
@@ -76,9 +84,9 @@ def test_discrete_samples_follow_the_masked_softmax():
 
 def test_loading_weights_refreshes_the_numpy_mirror():
     spec = BehaviorSpec([VECTOR], ActionSpec(3, ()))
-    actor = RolloutActor(ActorCritic(spec), seed=3)
-    zeros = {k: torch.zeros_like(v) for k, v in actor.state_dict().items()}
-    actor.load_state_dict(zeros)
+    network = ActorCritic(spec)
+    actor = rollout_actor(network, seed=3)
+    actor.load_state_dict({k: np.zeros_like(v) for k, v in numpy_state(network).items()})
     continuous, _, log_prob = actor.act(observations(spec, 5000))
     assert abs(continuous.mean()) < 0.05 and abs(continuous.std() - 1.0) < 0.05
     # log N(x; 0, 1) for each of the 3 dimensions
@@ -118,7 +126,7 @@ def test_squashed_conditional_policy_agrees_with_the_network(sensors, normalize)
     obs = observations(spec, 256)
     if normalize:
         network.update_normalization({k: torch.from_numpy(v * 3 + 2) for k, v in obs.items()})
-    actor = RolloutActor(network, seed=1)
+    actor = rollout_actor(network, seed=1)
     continuous, _, log_prob = actor.act(obs)
     assert np.abs(continuous).max() < 1.0 and continuous.std(0).min() > 0.05
     tensors = {k: torch.from_numpy(v) for k, v in obs.items()}
@@ -170,3 +178,40 @@ def test_the_factory_builds_the_same_initial_weights_in_every_process():
         assert not torch.equal(other.state_dict()["mean.weight"], first["mean.weight"])
     assert first.keys() == again.keys()
     assert all(torch.equal(first[k], again[k]) for k in first)
+
+
+@pytest.mark.parametrize("shape", [(3, 84, 84), (3, 40, 40), (1, 20, 36), (5, 10, 10), (2, 19, 30)])
+def test_the_torch_free_width_of_an_image_encoder_is_the_cnns(shape):
+    assert encoder_width(shape) == SensorEncoder(shape).size
+
+
+def test_workers_act_with_the_learners_initial_weights_and_ml_agents_initialization():
+    """The factory a worker unpickles gives the numpy actor the weights the learner's
+    network starts from (images: the torch network, the same too); the draws follow
+    ML-Agents' initialization."""
+    factory = PolicyFactory(seed=3)
+    spec = hybrid_spec(VECTOR, GRID)
+    network = factory.network("A", spec)
+    actor = factory("A", spec)
+    assert isinstance(actor, NumpyActor)
+    obs = observations(spec, 32)
+    tensors = {k: torch.from_numpy(v) for k, v in obs.items()}
+    continuous, discrete, log_prob = actor.act(obs)
+    with torch.no_grad():
+        expected, _, _ = network.evaluate(
+            tensors, torch.from_numpy(continuous), torch.from_numpy(discrete)
+        )
+    np.testing.assert_allclose(log_prob, expected.numpy(), rtol=1e-4, atol=1e-4)
+    image_spec = hybrid_spec(VECTOR, IMAGE)
+    image_actor = factory("B", image_spec)
+    assert isinstance(image_actor, TorchActor)
+    again = factory.network("B", image_spec).state_dict()
+    assert all(torch.equal(image_actor.network.state_dict()[k], v) for k, v in again.items())
+
+    wide = BehaviorSpec([ObservationSpec((400,), *VECTOR[1:3], "v")], ActionSpec(2, (3,)))
+    state = factory.initial_weights("C", wide)
+    trunk, head = state["trunk.0.weight"], state["mean.weight"]
+    assert abs(trunk.std() * np.sqrt(400) - 1.0) < 0.02  # kaiming_normal, linear gain
+    assert abs(head.std() * np.sqrt(128) / 0.2 - 1.0) < 0.15  # gain 0.2
+    assert abs(state["value.weight"]).max() <= np.sqrt(6 / 129)  # xavier_uniform
+    assert not state["trunk.0.bias"].any() and not state["log_std"].any()

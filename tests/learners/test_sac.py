@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import torch
 
+from learners.acting import NetworkSettings, NumpyActor
 from learners.config import defaults, load_config
 from learners.learner import policy_factory
-from learners.policies import ActorCritic, NetworkSettings, RolloutActor
+from learners.policies import ActorCritic, numpy_state
 from learners.sac import MAX_GRADIENT_STEPS, SAC, next_mask
 from rollout import keys
 from rollout.ports import PortRange
@@ -81,7 +82,7 @@ def test_masked_actions_are_never_sampled_and_weigh_nothing_in_the_target():
         sac.gradient_step(sac.buffer.sample())
 
     # Acting (the workers' numpy path): action 3 never comes out.
-    actor = RolloutActor(sac.network, seed=0)
+    actor = NumpyActor(spec, sac.network.settings, numpy_state(sac.network), seed=0)
     obs = {"vector": np.random.default_rng(0).normal(size=(5000, 6)).astype(np.float32)}
     mask = np.ones((5000, 4), bool)
     mask[:, 3] = False
@@ -181,7 +182,7 @@ def test_sac_behaviors_get_the_squashed_policy_everywhere():
     assert network.settings.tanh_squash and network.settings.conditional_sigma
     assert network.log_std is None and network.log_std_head is not None
     actor = factory("3DBall?team=0", vector_spec(8, continuous=2))  # what workers build
-    assert actor.network.settings == network.settings
+    assert actor.settings == network.settings
     ppo = policy_factory(load_config(CONFIG_DIR / "3DBall.yaml"))
     assert not ppo.network("3DBall?team=0", vector_spec(8, continuous=2)).settings.tanh_squash
 

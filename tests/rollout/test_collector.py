@@ -12,7 +12,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from learners.policies import actor_factory
+from learners.acting import actor_factory
 from rollout import keys
 from rollout.collector import Collector
 from rollout.specs import step_spec
@@ -145,11 +145,12 @@ def test_3dball_rows_are_cut_at_the_horizon_and_weights_versions_are_stamped(all
         assert [p.stop - p.start for p in trajectories(first[0])] == [10] * 12
         assert first[0][keys.NEXT, keys.TRUNCATED][9::10].all()
         assert (first[0][keys.POLICY_VERSION] == 0).all()
-        actor = collector.actors["3DBall?team=0"]
-        new_state = {k: torch.zeros_like(v) for k, v in actor.state_dict().items()}
-        collector.load_weights(3, {"3DBall?team=0": new_state})
-        collector.load_weights(2, {"3DBall?team=0": actor.state_dict()})  # older: ignored
-        assert all(torch.equal(v, torch.zeros_like(v)) for v in actor.state_dict().values())
+        spec = collector.unity.behavior_specs["3DBall?team=0"]
+        initial = actor_factory.initial_weights("3DBall?team=0", spec)
+        zeros = {k: np.zeros_like(v) for k, v in initial.items()}
+        wide = {**initial, "log_std": np.full_like(initial["log_std"], 2.0)}  # std 7.4
+        collector.load_weights(3, {"3DBall?team=0": zeros})
+        collector.load_weights(2, {"3DBall?team=0": wide})  # older: ignored
         # Steps acted on by version 3 only; at least 480 of them: 20 are too few for the
         # statistics below.
         fresh = []

@@ -12,7 +12,7 @@ import pytest
 import torch
 from ray.exceptions import ActorUnavailableError, RayTaskError
 
-from learners.policies import actor_factory
+from learners.acting import actor_factory
 from rollout import keys
 from rollout.ports import PortAllocator, PortRange
 from rollout.service import RolloutError, RolloutService, ServiceConfig

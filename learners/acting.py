@@ -1,0 +1,297 @@
+"""Acting without torch: what a rollout worker needs of a policy, in numpy.
+
+A worker process that never imports torch starts 1.3 s of CPU sooner and stays about
+180 MB smaller. So the policy factory that travels to workers lives here, the initial
+weights of the layers a worker acts with are drawn here (with numpy, from the run's seed
+and the behavior's name, the same in the learner and in every worker), and the learner
+publishes its weights as numpy arrays. :class:`NumpyActor` mirrors
+``learners.policies.ActorCritic.act`` for vector observations; behaviors with images or
+hyper-conditioned goals act through the torch network (``learners.policies.TorchActor``),
+whose process then loads torch.
+
+Weight names are ``ActorCritic.state_dict()``'s, so one dict serves both.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
+
+if TYPE_CHECKING:
+    from learners.policies import ActorCritic, TorchActor
+
+_HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
+_LOG_2 = math.log(2.0)
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # conditional_sigma clamp (ML-Agents' range)
+ACTION_CLIP = 3.0  # unsquashed samples reach Unity as clamp(a, -3, 3) / 3 (ML-Agents)
+NORM_CLIP = 5.0  # normalized observations are clipped to +-5 (ML-Agents)
+
+
+@dataclass(frozen=True)
+class NetworkSettings:
+    """ML-Agents ``network_settings``: hidden units and layers of the shared trunk."""
+
+    hidden_units: int = 128
+    num_layers: int = 2
+    normalize: bool = False  # running mean/variance normalization of vector observations
+    # "hyper": goal signals (ObservationType.GOAL_SIGNAL) condition the other features
+    # multiplicatively (one set of trunk weights per goal dimension, what ML-Agents'
+    # hypernetwork achieves); "none": goal signals are ordinary inputs.
+    goal_conditioning_type: str = "hyper"
+    # Not config keys: set by the learner's policy factory for SAC behaviors.
+    tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
+    conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter
+
+
+def base_name(behavior: str) -> str:
+    """``3DBall?team=0`` -> ``3DBall``: trainer configs name behaviors without the team."""
+    return behavior.split("?", 1)[0]
+
+
+def is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
+    return (
+        settings.goal_conditioning_type == "hyper"
+        and observation.observation_type == ObservationType.GOAL_SIGNAL
+    )
+
+
+def encoder_width(shape: tuple[int, ...]) -> int:
+    """Features a sensor's encoder gives (``policies.SensorEncoder``): a vector's size, or
+    32 channels of the CNN's last map (8x8/4 then 4x4/2 from 20 pixels up, else 3x3 twice)."""
+    if len(shape) != 3:
+        return math.prod(shape)
+    _, height, width = shape
+    if min(height, width) >= 20:
+        height, width = ((height - 8) // 4 + 1 - 4) // 2 + 1, ((width - 8) // 4 + 1 - 4) // 2 + 1
+        return 32 * height * width
+    return 32 * (height - 4) * (width - 4)
+
+
+def goal_sensors(spec: BehaviorSpec, settings: NetworkSettings) -> list[int]:
+    """Sensors that condition the others (none unless both kinds are present)."""
+    goals = [i for i, o in enumerate(spec.observation_specs) if is_goal(o, settings)]
+    return goals if goals and len(goals) < len(spec.observation_specs) else []
+
+
+def trunk_input_width(spec: BehaviorSpec, settings: NetworkSettings) -> int:
+    sizes = [encoder_width(tuple(o.shape)) for o in spec.observation_specs]
+    goals = goal_sensors(spec, settings)
+    if not goals:
+        return sum(sizes)
+    goal = sum(sizes[i] for i in goals)
+    return (sum(sizes) - goal) * goal + goal
+
+
+def acts_in_numpy(spec: BehaviorSpec, settings: NetworkSettings) -> bool:
+    """Vector sensors and no goal conditioning: the numpy actor covers it."""
+    return not goal_sensors(spec, settings) and all(
+        len(o.shape) != 3 for o in spec.observation_specs
+    )
+
+
+def initial_weights(
+    spec: BehaviorSpec, settings: NetworkSettings, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
+    """ML-Agents' initialization of every layer but the CNNs: zero biases, weights from
+    ``kaiming_normal`` for a linear layer (std 1/sqrt(fan in)) times a gain (mean and
+    log-std heads 0.2, discrete heads 0.1) or ``xavier_uniform`` (the value head); log-std
+    0; normalizers at mean 0, variance 1. Drawn in a fixed order, so a seeded ``rng``
+    gives the same weights in every process."""
+    state: dict[str, np.ndarray] = {}
+
+    def linear(name: str, fan_in: int, out: int, gain: float = 1.0, xavier: bool = False) -> None:
+        if xavier:
+            bound = math.sqrt(6.0 / (fan_in + out))
+            weight = rng.uniform(-bound, bound, size=(out, fan_in))
+        else:
+            weight = rng.normal(0.0, 1.0 / math.sqrt(fan_in), size=(out, fan_in))
+        state[f"{name}.weight"] = (weight * gain).astype(np.float32)
+        state[f"{name}.bias"] = np.zeros(out, np.float32)
+
+    for index, observation in enumerate(spec.observation_specs):
+        if settings.normalize and len(observation.shape) != 3:
+            size = math.prod(observation.shape)
+            state[f"encoders.{index}.norm.count"] = np.array(1e-4, np.float64)
+            state[f"encoders.{index}.norm.mean"] = np.zeros(size, np.float32)
+            state[f"encoders.{index}.norm.var"] = np.ones(size, np.float32)
+    encoded = trunk_input_width(spec, settings)
+    for trunk in ("trunk", "critic_trunk"):
+        width = encoded
+        for layer in range(settings.num_layers):
+            linear(f"{trunk}.{2 * layer}", width, settings.hidden_units)
+            width = settings.hidden_units
+    width = settings.hidden_units if settings.num_layers else encoded
+    continuous = spec.action_spec.continuous_size
+    if continuous:
+        linear("mean", width, continuous, gain=0.2)
+        if settings.conditional_sigma:
+            linear("log_std_head", width, continuous, gain=0.2)
+        else:
+            state["log_std"] = np.zeros(continuous, np.float32)
+    branches = sum(spec.action_spec.discrete_branches)
+    if branches:
+        linear("logits", width, branches, gain=0.1)
+    linear("value", width, 1, xavier=True)
+    return state
+
+
+def to_unity(continuous: np.ndarray, settings: NetworkSettings) -> np.ndarray:
+    """The continuous action Unity receives for a stored one (``ActorCritic.unity_action``)."""
+    if settings.tanh_squash:
+        return continuous
+    return np.clip(continuous, -ACTION_CLIP, ACTION_CLIP) / ACTION_CLIP
+
+
+def _as_numpy(value: Any, dtype: type = np.float32) -> np.ndarray:
+    return np.array(value, dtype=dtype)  # a copy: never a view of a live parameter
+
+
+class NumpyActor:
+    """The acting half of an ``ActorCritic`` over vector sensors, in numpy: a tiny MLP
+    costs less here than torch's per-op dispatch (27 µs against 85 µs for 3DBall's 12
+    agents). Same law as ``ActorCritic.act``: Gaussian samples with their
+    log-probabilities (tanh-corrected when squashed), Gumbel-max over the masked
+    log-softmax per discrete branch."""
+
+    def __init__(
+        self,
+        spec: BehaviorSpec,
+        settings: NetworkSettings,
+        state: Mapping[str, Any],
+        seed: int | None = None,
+    ) -> None:
+        assert acts_in_numpy(spec, settings), "images or goal conditioning need TorchActor"
+        self.settings = settings
+        self.sensor_names = [o.name for o in spec.observation_specs]
+        self.branches = tuple(spec.action_spec.discrete_branches)
+        self.rng = np.random.default_rng(seed)
+        self.load_state_dict(state)
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        def layer(name: str) -> tuple[np.ndarray, np.ndarray] | None:
+            if f"{name}.weight" not in state:
+                return None
+            weight = np.ascontiguousarray(_as_numpy(state[f"{name}.weight"]).T)
+            return weight, _as_numpy(state[f"{name}.bias"])
+
+        self._norms: list[tuple[np.ndarray, np.ndarray] | None] = []
+        for index in range(len(self.sensor_names)):
+            prefix = f"encoders.{index}.norm"
+            if f"{prefix}.mean" in state:
+                var = _as_numpy(state[f"{prefix}.var"])
+                scale = (1.0 / np.sqrt(var + 1e-8)).astype(np.float32)
+                self._norms.append((_as_numpy(state[f"{prefix}.mean"]), scale))
+            else:
+                self._norms.append(None)
+        self._layers = []
+        while (found := layer(f"trunk.{2 * len(self._layers)}")) is not None:
+            self._layers.append(found)
+        self._mean = layer("mean")
+        self._log_std_head = layer("log_std_head")
+        self._log_std = _as_numpy(state["log_std"]) if "log_std" in state else None
+        self._logits = layer("logits")
+
+    def to_unity(self, continuous: np.ndarray) -> np.ndarray:
+        return to_unity(continuous, self.settings)
+
+    def act(
+        self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(continuous [n, c] float32, discrete [n, branches] int64, log-probs
+        [n, c + branches] float32), as ``ActorCritic.act``."""
+        n = len(next(iter(obs.values())))
+        parts = []
+        for name, norm in zip(self.sensor_names, self._norms, strict=True):
+            part = obs[name].reshape(n, -1)
+            if norm is not None:
+                part = np.clip((part - norm[0]) * norm[1], -NORM_CLIP, NORM_CLIP)
+            parts.append(part)
+        hidden = np.concatenate(parts, axis=1)
+        for weight, bias in self._layers:
+            hidden = hidden @ weight + bias
+            hidden *= 0.5 * (1.0 + np.tanh(0.5 * hidden))  # Swish: x sigmoid(x), no overflow
+        log_probs = [np.zeros((n, 0), np.float32)]
+        continuous = np.zeros((n, 0), np.float32)
+        if self._mean is not None:
+            mean = hidden @ self._mean[0] + self._mean[1]
+            if self._log_std_head is not None:
+                log_std = hidden @ self._log_std_head[0] + self._log_std_head[1]
+                log_std = np.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+            else:
+                assert self._log_std is not None
+                log_std = self._log_std
+            noise = self.rng.standard_normal(mean.shape, dtype=np.float32)
+            continuous = mean + noise * np.exp(log_std)
+            gaussian = -0.5 * noise * noise - log_std - _HALF_LOG_2PI
+            if self.settings.tanh_squash:  # as ActorCritic.act: Jacobian, then squash
+                gaussian -= 2.0 * (_LOG_2 - continuous - np.logaddexp(0.0, -2.0 * continuous))
+                continuous = np.tanh(continuous)
+            log_probs.append(gaussian)
+        discrete = np.zeros((n, 0), np.int64)
+        if self._logits is not None:
+            logits = hidden @ self._logits[0] + self._logits[1]
+            if mask is not None:
+                logits = np.where(mask, logits, -np.inf)
+            picks, offset = [], 0
+            for size in self.branches:
+                branch = logits[:, offset : offset + size]
+                offset += size
+                branch_logp = branch - branch.max(-1, keepdims=True)
+                branch_logp -= np.log(np.exp(branch_logp).sum(-1, keepdims=True))
+                gumbel = -np.log(self.rng.exponential(size=branch.shape))
+                pick = (branch_logp + gumbel).argmax(-1)
+                log_probs.append(branch_logp[np.arange(n), pick, None])
+                picks.append(pick)
+            discrete = np.stack(picks, axis=-1).astype(np.int64)
+        log_prob = np.concatenate(log_probs, axis=1).astype(np.float32)
+        return continuous.astype(np.float32), discrete, log_prob
+
+
+@dataclass(frozen=True)
+class PolicyFactory:
+    """Builds a behavior's policy the same way on the learner and in every worker, down
+    to the initial weights (drawn from ``seed`` and the behavior's name): before the first
+    update every worker acts with the very policy the learner will improve, as
+    mlagents-learn's one policy does, so the first update's ratios start at 1.
+
+    Picklable without torch, so the service ships it to workers; ``settings`` is keyed by
+    the behavior name without ``?team=``, as in trainer configs.
+    """
+
+    settings: Mapping[str, NetworkSettings] = field(default_factory=dict)
+    default: NetworkSettings = NetworkSettings()
+    seed: int = 0
+
+    def settings_for(self, behavior: str) -> NetworkSettings:
+        return self.settings.get(base_name(behavior), self.default)
+
+    def _key(self, behavior: str) -> int:
+        return zlib.crc32(f"{self.seed}/{behavior}".encode())
+
+    def initial_weights(self, behavior: str, spec: BehaviorSpec) -> dict[str, np.ndarray]:
+        rng = np.random.default_rng(self._key(behavior))
+        return initial_weights(spec, self.settings_for(behavior), rng)
+
+    def network(self, behavior: str, spec: BehaviorSpec) -> ActorCritic:
+        """The learner's ``ActorCritic`` (loads torch), starting from ``initial_weights``."""
+        from learners.policies import seeded_network
+
+        initial = self.initial_weights(behavior, spec)
+        return seeded_network(spec, self.settings_for(behavior), self._key(behavior), initial)
+
+    def __call__(self, behavior: str, spec: BehaviorSpec) -> NumpyActor | TorchActor:
+        settings = self.settings_for(behavior)
+        if acts_in_numpy(spec, settings):
+            return NumpyActor(spec, settings, self.initial_weights(behavior, spec))
+        from learners.policies import TorchActor  # images: this worker needs torch
+
+        return TorchActor(self.network(behavior, spec))
+
+
+actor_factory = PolicyFactory()  # default networks: what tests and `collect` use
