@@ -13,6 +13,7 @@ behaviors learning side by side do not make each other's data look stale.
 
 from __future__ import annotations
 
+import importlib
 import time
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
@@ -44,6 +45,9 @@ class Algorithm(Protocol):
     def update(self, progress: float) -> dict[str, float]: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+ALGORITHM_MODULES = {"ppo": "learners.ppo", "sac": "learners.sac", "impala": "learners.impala"}
 
 
 def make_algorithm(network: ActorCritic, settings: TrainerSettings) -> Algorithm:
@@ -123,6 +127,12 @@ class CentralLearner:
         self.stats = LearnerStats()
         self._reports: list[tuple[str, int, dict[str, float]]] = []
 
+    def prepare(self) -> None:
+        """Load the algorithms' modules (torchrl, tensordict: seconds of CPU) before the
+        first data arrives, not while the first update waits on them."""
+        for settings in (*self.config.behaviors.values(), self.config.default):
+            importlib.import_module(ALGORITHM_MODULES[settings.trainer_type])
+
     # --- the learner contract -----------------------------------------------------------
 
     def submit(self, segments: list[Segment | TensorDict]) -> tuple[int, int | None]:
@@ -181,9 +191,10 @@ class CentralLearner:
 
     def progress(self) -> dict[str, Any]:
         """Steps per behavior, whether all are done, and learner throughput."""
-        steps = {name: s.steps for name, s in self.behaviors.items()}
+        # copies: as a Ray actor (learner_actor) this runs while ``submit`` may
+        steps = {name: s.steps for name, s in list(self.behaviors.items())}
         done = bool(steps) and all(s >= self.behavior_max_steps(name) for name, s in steps.items())
-        return {"version": self.version, "steps": steps, "done": done, "stats": self.stats}
+        return {"version": self.version, "steps": steps, "done": done, "stats": replace(self.stats)}
 
     def drain_reports(self) -> list[tuple[str, int, dict[str, float]]]:
         """(behavior, step, metrics) of each update since the last call (for TensorBoard)."""
@@ -221,11 +232,22 @@ class CentralLearner:
 def learner_actor(
     config: RunConfig, max_steps: int | None = None, num_cpus: float = 0, seed: int = 0
 ) -> Any:
-    """Start the learner as a Ray actor (imported here so the class itself needs no Ray)."""
+    """Start the learner as a Ray actor (imported here so the class itself needs no Ray).
+
+    ``progress`` and ``drain_reports`` answer on a thread of their own: the driver's
+    summaries and checks do not wait for an update in progress (mlagents-learn writes a
+    summary before the update that follows it, too)."""
     import ray
 
-    remote = ray.remote(CentralLearner).options(num_cpus=num_cpus)
-    return remote.remote(config, max_steps, 1, seed)
+    class RayLearner(CentralLearner):
+        progress = ray.method(concurrency_group="status")(CentralLearner.progress)
+        drain_reports = ray.method(concurrency_group="status")(CentralLearner.drain_reports)
+
+    remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
+    remote = remote.options(num_cpus=num_cpus)
+    learner = remote.remote(config, max_steps, 1, seed)
+    learner.prepare.remote()  # while the workers start
+    return learner
 
 
 __all__ = ["Algorithm", "CentralLearner", "base_name", "learner_actor", "policy_factory"]

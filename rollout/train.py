@@ -235,7 +235,7 @@ def _run(
     ):
         while not received:
             try:
-                metrics = service.run(seconds=1.0, report_every=1.0)
+                metrics = service.run(seconds=0.5, report_every=0.5)
             except RolloutError:  # keep what was learned, then report the cause
                 checkpoints.save(ray.get(learner.state_dict.remote()), meta)
                 raise
