@@ -13,6 +13,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
+from rollout.restarts import RestartPolicy
+
 if TYPE_CHECKING:
     from rollout.local_ray import BackgroundRay
 
@@ -71,6 +73,15 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
+    try:
+        restarts = RestartPolicy(
+            max_lifetime_restarts=args.max_lifetime_restarts,
+            rate_limit_n=args.restarts_rate_limit_n,
+            rate_limit_period_s=args.restarts_rate_limit_period_s,
+        )
+    except ValueError as error:
+        console.print(f"[red]error:[/red] --restarts-{error}", soft_wrap=True)
+        return 2
     options = TrainOptions(
         env=args.env,
         workers=args.workers,
@@ -86,6 +97,7 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
         address=args.address,
         progress=not args.no_progress and sys.stdout.isatty(),
         num_areas=args.num_areas,
+        restarts=restarts,
     )
     try:
         result = train(options, starting)
@@ -222,6 +234,27 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--num-areas", type=int, default=1, help="training areas per Unity")
     train.add_argument("--cpus", type=int, default=2, help="local mode: ray.init(num_cpus)")
     train.add_argument("--address", help="join an existing Ray cluster (e.g. auto in a job)")
+    defaults = RestartPolicy()
+    train.add_argument(
+        "--max-lifetime-restarts",
+        type=int,
+        default=defaults.max_lifetime_restarts,
+        help="restarts of one Unity instance in the run, -1: no limit (as mlagents-learn; "
+        f"default {defaults.max_lifetime_restarts})",
+    )
+    train.add_argument(
+        "--restarts-rate-limit-n",
+        type=int,
+        default=defaults.rate_limit_n,
+        help="restarts of one Unity instance within the period, -1: no limit (as "
+        f"mlagents-learn; default {defaults.rate_limit_n})",
+    )
+    train.add_argument(
+        "--restarts-rate-limit-period-s",
+        type=float,
+        default=defaults.rate_limit_period_s,
+        help=f"the rate limit's period (default {defaults.rate_limit_period_s:g})",
+    )
     train.add_argument(
         "--no-progress",
         action="store_true",

@@ -20,6 +20,7 @@ loop. Off-policy and V-trace learners answer None and keep every worker busy.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -39,6 +40,7 @@ log = logging.getLogger(__name__)
 
 
 RETRY_PAUSE_S = 0.5  # between collects sent to a worker that Ray is restarting
+REPORT_WAIT_S = 2.0  # at the end of ``run``: for metrics of workers between collects
 
 
 class RolloutError(RuntimeError):
@@ -133,6 +135,8 @@ class RolloutService:
         self._failures: list[int] = []  # consecutive failed collects per worker
         self._restarting: dict[int, float] = {}  # worker index -> when it went away
         self._retry_at: dict[int, float] = {}  # worker index -> when to ask it again
+        self._metrics_calls: dict[int, ray.ObjectRef] = {}  # worker index -> metrics call
+        self._reported: dict[int, CollectorMetrics] = {}  # worker index -> its last metrics
         self._started = 0.0
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -169,6 +173,8 @@ class RolloutService:
         self._failures = [0] * len(self.workers)
         self._restarting.clear()
         self._retry_at.clear()
+        self._metrics_calls.clear()
+        self._reported.clear()
         self._idle = set(range(len(self.workers)))
         for index in range(len(self.workers)):
             for _ in range(self.config.collects_per_worker - 1):
@@ -185,6 +191,7 @@ class RolloutService:
         for worker in self.workers:
             ray.kill(worker, no_restart=True)
         self.workers = []
+        self._metrics_calls.clear()
         self._collects.clear()
         self._submits.clear()
         self._submit_steps.clear()
@@ -343,15 +350,24 @@ class RolloutService:
             if until is not None and until(self.metrics):
                 break
         self._drain_submits(block=False)
-        return self.refresh_metrics()
+        return self.refresh_metrics(wait_s=REPORT_WAIT_S)
 
-    def refresh_metrics(self) -> ServiceMetrics:
-        workers: list[CollectorMetrics] = []
-        for worker in self.workers:
-            try:
-                workers.append(ray.get(worker.metrics.remote(), timeout=30))
-            except RayActorError:
-                continue
+    def refresh_metrics(self, wait_s: float = 0.0) -> ServiceMetrics:
+        """Aggregate each worker's newest metrics. Never blocks on a worker (a hung player
+        holds its worker in ``step`` until ``timeout_wait``): one metrics call per worker
+        is in flight, answered between its collects, and a busy worker counts with what
+        it last reported. ``wait_s``: how long to wait for the calls in flight."""
+        for index, worker in enumerate(self.workers):
+            if index not in self._metrics_calls:
+                self._metrics_calls[index] = worker.metrics.remote()
+        calls = list(self._metrics_calls.values())
+        answered, _ = ray.wait(calls, num_returns=len(calls), timeout=wait_s)
+        for index, call in list(self._metrics_calls.items()):
+            if call in answered:
+                del self._metrics_calls[index]
+                with contextlib.suppress(RayActorError):  # died: its last report stands
+                    self._reported[index] = ray.get(call)
+        workers = [self._reported[i] for i in sorted(self._reported)]
         metrics = self.metrics
         metrics.workers = workers
         metrics.env_steps = sum(w.env_steps for w in workers)

@@ -19,7 +19,7 @@ import signal
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 from typing import Any
@@ -32,6 +32,7 @@ from learners import checkpoint
 from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
 from learners.learner import learner_actor, policy_factory
 from rollout.local_ray import BackgroundRay, init_local_ray
+from rollout.restarts import RestartPolicy
 from rollout.service import RolloutError, RolloutService, ServiceConfig
 from rollout.summaries import Summaries, next_multiple
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
@@ -59,6 +60,7 @@ class TrainOptions:
     address: str | None = None  # join an existing Ray cluster instead ("auto" in a job)
     progress: bool = True
     num_areas: int = 1
+    restarts: RestartPolicy = field(default_factory=RestartPolicy)  # of each Unity instance
 
 
 @dataclass(frozen=True)
@@ -116,6 +118,7 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
         engine=engine,
         env_params=dict(config.environment_parameters),
         log_folder=str(run_dir / "unity-logs"),
+        restarts=options.restarts,
     )
 
 

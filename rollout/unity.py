@@ -58,6 +58,7 @@ from mlagents_envs.side_channel.environment_parameters_channel import (
 from mlagents_envs.side_channel.stats_side_channel import StatsSideChannel
 
 from rollout.ports import PortAllocator
+from rollout.restarts import RestartBudget, RestartPolicy, RestartRefused
 from unitysim.launcher import write_executable
 
 log = logging.getLogger(__name__)
@@ -105,8 +106,7 @@ class UnityConfig:
     env_params: Mapping[str, float] = field(default_factory=dict)
     additional_args: tuple[str, ...] = ()
     log_folder: str | None = None
-    max_restarts: int = 5
-    backoff_s: float = 0.5  # doubled after each consecutive restart, capped at 30 s
+    restarts: RestartPolicy = field(default_factory=RestartPolicy)
 
 
 # --- builds ---------------------------------------------------------------------------
@@ -254,6 +254,10 @@ class GuardedUnityEnvironment(UnityEnvironment):
     ) -> RpcCommunicator:
         return LoopbackCommunicator(base_port + worker_id, timeout_wait, self._on_bound)
 
+    def abort(self) -> None:
+        """Close without waiting for the player to exit on its own (it failed)."""
+        self._close(timeout=0)
+
     def _close(self, timeout: int | None = None) -> None:
         process = self._process
         super()._close(timeout)
@@ -298,11 +302,14 @@ class UnityInstance:
         self.config = config
         self.allocator = allocator or PortAllocator()
         self.executable = resolve_build(config.build)  # bad paths fail here, at once
-        self.restarts = 0
+        self.budget = RestartBudget(config.restarts)
         self.port: int | None = None
         self.env: GuardedUnityEnvironment | None = None
         self._stats = StatsSideChannel()
-        self._consecutive_failures = 0
+
+    @property
+    def restarts(self) -> int:
+        return self.budget.restarts
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -340,35 +347,40 @@ class UnityInstance:
         self.port = port
         log.info("Unity %s on port %d (pid %s)", config.build, port, self.env.player_pid)
 
-    def close(self) -> None:
+    def close(self, failed: bool = False) -> None:
+        """``failed``: the player crashed or hangs, so it gets no grace period to exit."""
         env, port = self.env, self.port
         self.env, self.port = None, None
         try:
             if env is not None:
                 with contextlib.suppress(Exception):
-                    env.close()
+                    env.abort() if failed else env.close()
         finally:
             if port is not None:
                 self.allocator.release(port)
 
     def restart(self, reason: str) -> None:
-        """Close, back off, and start again on a fresh port (budget permitting)."""
-        self.close()
-        if self.restarts >= self.config.max_restarts:
-            raise UnityError(
-                f"{self.config.build}: restart budget of {self.config.max_restarts} spent "
-                f"(last failure: {reason})"
-            )
-        self.restarts += 1
-        delay = min(self.config.backoff_s * 2**self._consecutive_failures, 30.0)
-        self._consecutive_failures += 1
-        log.warning("restarting Unity (%s) in %.1f s: %s", self.config.build, delay, reason)
-        time.sleep(delay)
-        self.start()
+        """Close, back off, and start again on a fresh port, as the restart policy allows;
+        a launch that fails counts as one more failed start."""
+        self.close(failed=True)
+        while True:
+            try:
+                delay = self.budget.admit(str(self.config.build), reason)
+            except RestartRefused as refused:
+                raise UnityError(str(refused)) from None
+            log.warning("restarting Unity (%s) in %.1f s: %s", self.config.build, delay, reason)
+            time.sleep(delay)
+            try:
+                self.start()
+                return
+            except UnityError:
+                raise
+            except RECOVERABLE as error:
+                reason = f"{type(error).__name__}: {str(error).splitlines()[0]}"
 
     def healthy_step(self) -> None:
         """Call after a successful exchange: the backoff starts over."""
-        self._consecutive_failures = 0
+        self.budget.healthy()
 
     def __enter__(self) -> UnityInstance:
         self.start()

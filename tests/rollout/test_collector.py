@@ -15,6 +15,7 @@ from tensordict import TensorDict
 from learners.acting import actor_factory
 from rollout import keys
 from rollout.collector import Collector
+from rollout.restarts import RestartPolicy
 from rollout.specs import step_spec
 from rollout.unity import UnityConfig
 from tests.helpers import leak_checked_allocator, trajectories
@@ -112,7 +113,7 @@ def test_echo_trajectories_are_exact_across_switches_arrivals_and_terminals(allo
 
 def test_killed_player_restarts_and_no_partial_row_is_emitted(allocator):
     collector = Collector(
-        UnityConfig("unitysim:Echo", seed=5, backoff_s=0.0),
+        UnityConfig("unitysim:Echo", seed=5, restarts=RestartPolicy(backoff_s=0.0)),
         actor_factory,
         horizon=8,
         allocator=allocator,

@@ -15,6 +15,7 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
 from rollout.gymnasium_env import AgentSetError, UnityGymEnv, UnityVectorEnv
+from rollout.restarts import RestartPolicy
 from rollout.unity import UnityConfig, UnityError
 from tests.helpers import leak_checked_allocator, wait_gone
 
@@ -266,7 +267,9 @@ def test_hybrid_actions_are_a_dict(allocator):
 
 def test_a_crashed_player_restarts_and_the_episode_ends_truncated(allocator):
     config = UnityConfig(
-        "unitysim:Basic", additional_args=("--sim-crash-after", "4"), backoff_s=0.01
+        "unitysim:Basic",
+        additional_args=("--sim-crash-after", "4"),
+        restarts=RestartPolicy(backoff_s=0.01),
     )
     with UnityGymEnv(config, allocator=allocator) as env:
         first_pid = env.unity.player_pid

@@ -15,7 +15,8 @@ from ray.exceptions import ActorUnavailableError, RayTaskError
 from learners.acting import actor_factory
 from rollout import keys
 from rollout.ports import PortAllocator, PortRange
-from rollout.service import RolloutError, RolloutService, ServiceConfig
+from rollout.restarts import RestartPolicy
+from rollout.service import REPORT_WAIT_S, RolloutError, RolloutService, ServiceConfig
 from rollout.specs import step_spec
 from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
@@ -240,14 +241,16 @@ def test_a_killed_worker_is_one_failure_however_long_ray_takes_to_restart_it(ray
 def test_a_worker_whose_unity_keeps_failing_ends_the_run_with_its_cause(ray_session, registry):
     learner = ray_session.remote(CountingLearner).remote()
     unity = UnityConfig(
-        "unitysim:3DBall", additional_args=("--sim-crash-after", "2"), max_restarts=1, backoff_s=0
+        "unitysim:3DBall",
+        additional_args=("--sim-crash-after", "2"),
+        restarts=RestartPolicy(max_lifetime_restarts=1, backoff_s=0),
     )
     config = ServiceConfig(
         unity, num_workers=1, horizon=8, worker_cpus=0.5, port_range=PORTS, registry_dir=registry
     )
     with (
         RolloutService(config, actor_factory, learner) as service,
-        pytest.raises(RolloutError, match=r"worker 0: .*restart budget of 1 spent"),
+        pytest.raises(RolloutError, match=r"worker 0: .*lifetime limit of 1 restarts reached"),
     ):
         service.run(seconds=60)
 
@@ -277,3 +280,33 @@ def test_a_worker_restarted_while_idle_asks_for_the_weights_again(ray_session, r
         assert ray_session.get(worker.identity.remote())["pid"] != old["pid"]
     finally:
         stop_worker(ray_session, worker)
+
+
+def test_a_hung_player_stalls_neither_the_driver_nor_the_run(ray_session, registry):
+    """Both players stop answering after 200 steps, on every launch. The driver's loop
+    keeps its pace with the workers' last metrics (it used to wait 30 s on a metrics call
+    queued behind the hung step, then fail); each hang is found within ``timeout_wait``,
+    the player is killed at once and replaced, and collection goes on."""
+    learner = ray_session.remote(CountingLearner).remote(bump_every=2)
+    unity = UnityConfig(
+        "unitysim:3DBall",
+        additional_args=("--sim-hang-after", "200"),
+        timeout_wait=15,
+        restarts=RestartPolicy(backoff_s=0.0),
+    )
+    config = ServiceConfig(
+        unity, num_workers=2, horizon=16, worker_cpus=0.5, port_range=PORTS, registry_dir=registry
+    )
+    with RolloutService(config, actor_factory, learner) as service:
+        service.run(agent_steps=1000)
+        longest, deadline = 0.0, time.monotonic() + 120
+        while service.metrics.unity_restarts < 2 and time.monotonic() < deadline:
+            started = time.monotonic()
+            service.run(seconds=1.0)
+            longest = max(longest, time.monotonic() - started)
+        before = service.metrics.segments
+        service.run(seconds=3.0)
+        assert service.metrics.segments > before, "collection went on after the restarts"
+    ray_session.kill(learner)
+    assert service.metrics.unity_restarts >= 2
+    assert longest < 1.0 + REPORT_WAIT_S + 5.0, f"a run of 1 s took {longest:.1f} s"

@@ -15,6 +15,7 @@ import psutil
 import pytest
 
 from rollout.ports import PortAllocator, PortRange
+from rollout.restarts import RestartPolicy
 from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance, resolve_build
 from tests.helpers import leak_checked_allocator, wait_gone
 
@@ -78,7 +79,9 @@ def test_incompatible_version_is_a_clear_error(allocator):
 
 
 def test_killed_player_is_restarted_on_a_fresh_port(allocator):
-    with UnityInstance(UnityConfig("unitysim:3DBall", backoff_s=0.0), allocator) as unity:
+    with UnityInstance(
+        UnityConfig("unitysim:3DBall", restarts=RestartPolicy(backoff_s=0.0)), allocator
+    ) as unity:
         unity.reset()
         first_port, first_pid = unity.port, unity.player_pid
         os.kill(first_pid, signal.SIGKILL)
@@ -95,12 +98,15 @@ def test_killed_player_is_restarted_on_a_fresh_port(allocator):
         assert len(unity.get_steps(BALL)[0]) == 12
 
 
+LIFETIME_1 = RestartPolicy(max_lifetime_restarts=1, backoff_s=0.0)
+
+
 def test_restart_budget_is_enforced(allocator):
-    unity = UnityInstance(UnityConfig("unitysim:Basic", max_restarts=1, backoff_s=0.0), allocator)
+    unity = UnityInstance(UnityConfig("unitysim:Basic", restarts=LIFETIME_1), allocator)
     unity.start()
     try:
         unity.restart("first")
-        with pytest.raises(UnityError, match="restart budget of 1 spent"):
+        with pytest.raises(UnityError, match="lifetime limit of 1 restarts reached"):
             unity.restart("second")
     finally:
         unity.close()
@@ -202,12 +208,11 @@ def test_each_failure_restarts_on_a_fresh_port_until_the_budget_is_spent(
         "unitysim:3DBall",
         additional_args=flags,
         timeout_wait=timeout_wait,
-        max_restarts=2,
-        backoff_s=0.0,
+        restarts=RestartPolicy(max_lifetime_restarts=2, backoff_s=0.0),
     )
     collector = Collector(config, actor_factory, horizon=4, allocator=allocator)
     try:
-        with pytest.raises(UnityError, match="restart budget of 2 spent"):
+        with pytest.raises(UnityError, match="lifetime limit of 2 restarts reached"):
             for _ in range(50):
                 collector.collect()
         assert collector.snapshot().restarts == 2

@@ -1,0 +1,122 @@
+"""Restart limits: by rate and lifetime (ML-Agents' keys), and launches that fail before
+a step. Unit tests on a fake clock, then real players that crash or hang on every launch."""
+
+from __future__ import annotations
+
+import psutil
+import pytest
+
+from learners.acting import actor_factory
+from rollout.collector import Collector
+from rollout.ports import PortAllocator, PortRange
+from rollout.restarts import RestartBudget, RestartPolicy, RestartRefused
+from rollout.unity import UnityConfig, UnityError
+from tests.helpers import wait_gone
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def productive_restarts(budget: RestartBudget, clock: Clock, count: int, every_s: float) -> None:
+    for _ in range(count):
+        budget.healthy()
+        clock.now += every_s
+        budget.admit("build", "crash")
+
+
+def test_a_crash_prone_but_productive_build_restarts_without_end():
+    clock = Clock()
+    budget = RestartBudget(RestartPolicy(), clock)  # defaults: 20 per 60 s, no lifetime limit
+    productive_restarts(budget, clock, 1000, every_s=3.0 + 1e-6)
+    assert budget.restarts == 1000
+
+
+def test_the_rate_limit_counts_restarts_within_the_period():
+    clock = Clock()
+    budget = RestartBudget(RestartPolicy(rate_limit_n=3, rate_limit_period_s=10.0), clock)
+    productive_restarts(budget, clock, 3, every_s=1.0)
+    with pytest.raises(RestartRefused, match=r"more than 3 restarts within 10 s .*last failure: x"):
+        budget.healthy()
+        budget.admit("build", "x")
+    clock.now += 8.0  # the first restart (at 1 s) has left the window
+    budget.admit("build", "y")
+    assert budget.restarts == 4
+
+
+def test_the_lifetime_limit_is_ml_agents_max_lifetime_restarts():
+    clock = Clock()
+    budget = RestartBudget(RestartPolicy(max_lifetime_restarts=2), clock)
+    productive_restarts(budget, clock, 2, every_s=3600.0)
+    with pytest.raises(RestartRefused, match="lifetime limit of 2 restarts reached"):
+        productive_restarts(budget, clock, 1, every_s=3600.0)
+
+
+def test_launches_that_fail_before_a_step_stop_quickly_with_backoff():
+    budget = RestartBudget(RestartPolicy(max_failed_starts=3, backoff_s=0.5), Clock())
+    delays = [budget.admit("build", "crash") for _ in range(3)]
+    assert delays == [0.5, 1.0, 2.0]
+    with pytest.raises(RestartRefused, match="4 launches in a row failed before a step"):
+        budget.admit("build", "no connection")
+    budget.healthy()  # a good step: the backoff starts over
+    assert budget.admit("build", "crash") == 0.5
+
+
+PORTS = PortRange(24500, 24599)
+
+
+@pytest.fixture
+def allocator(tmp_path):
+    allocator = PortAllocator(PORTS, tmp_path / "ports")
+    yield allocator
+    assert allocator.leases() == {}, "a test left a port leased"
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(
+    ("flags", "timeout_wait"),
+    [(("--sim-crash-after", "300"), 60), (("--sim-hang-after", "100"), 3)],
+    ids=["crash", "hang"],
+)
+def test_a_fault_on_every_launch_costs_restarts_not_the_run(allocator, flags, timeout_wait):
+    """Each launch gives good steps, then crashes (or hangs: found within ``timeout_wait``
+    and killed at once); after ten such restarts collection goes on, and no player is left."""
+    config = UnityConfig(
+        "unitysim:3DBall",
+        additional_args=flags,
+        timeout_wait=timeout_wait,
+        restarts=RestartPolicy(backoff_s=0.0),
+    )
+    collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
+    players: set[int] = set()
+    try:
+        while collector.snapshot().restarts < 10:
+            collector.collect(min_steps=200)
+            players.add(collector.unity.player_pid)
+        assert sum(len(s) for s in collector.collect(min_steps=200)) >= 200
+    finally:
+        collector.close()
+    assert len(players) >= 10
+    assert all(wait_gone(pid, 10.0) for pid in players)
+    assert collector.snapshot().dropped_steps > 0  # partial rows of each failed player
+
+
+@pytest.mark.integration
+def test_a_build_that_fails_at_every_launch_stops_with_its_cause(allocator):
+    config = UnityConfig(
+        "unitysim:3DBall",
+        additional_args=("--sim-crash-after", "1"),
+        restarts=RestartPolicy(max_failed_starts=3, backoff_s=0.01),
+    )
+    collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
+    try:
+        with pytest.raises(UnityError, match="4 launches in a row failed before a step"):
+            collector.collect(min_steps=10)
+        assert collector.snapshot().restarts == 3
+    finally:
+        collector.close()
+    assert not [p for p in psutil.Process().children(recursive=True) if p.is_running()]
