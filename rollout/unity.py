@@ -2,8 +2,8 @@
 player tied to its owner's life, side channels, and restarts after failures.
 
 ``UnityEnvironment`` (mlagents-envs, unmodified) is subclassed in two places only:
-``_get_communicator`` returns a server bound to 127.0.0.1 with SO_REUSEPORT off on a port
-from :mod:`rollout.ports`, and ``_close`` also kills the player's process group. The
+``_get_communicator`` returns :mod:`rollout.communicator`'s server on a port from
+:mod:`rollout.ports`, and ``_close`` also kills the player's process group. The
 player is launched through :mod:`rollout.launch_guard`, so it dies with its owner even
 after a SIGKILL. The same code drives real builds, unitysim builds
 (``unitysim:3DBall``) and the editor (``build=None``, port 5004).
@@ -15,7 +15,6 @@ import contextlib
 import hashlib
 import logging
 import os
-import queue
 import shlex
 import signal
 import subprocess
@@ -23,20 +22,15 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import grpc
 from mlagents_envs import env_utils
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps, TerminalSteps
 from mlagents_envs.communicator_objects.agent_action_pb2 import AgentActionProto
 from mlagents_envs.communicator_objects.command_pb2 import STEP
 from mlagents_envs.communicator_objects.unity_input_pb2 import UnityInputProto
 from mlagents_envs.communicator_objects.unity_rl_input_pb2 import UnityRLInputProto
-from mlagents_envs.communicator_objects.unity_to_external_pb2_grpc import (
-    add_UnityToExternalProtoServicer_to_server,
-)
 from mlagents_envs.environment import UnityEnvironment
 from mlagents_envs.exception import (
     UnityCommunicationException,
@@ -45,10 +39,7 @@ from mlagents_envs.exception import (
     UnityTimeOutException,
     UnityWorkerInUseException,
 )
-from mlagents_envs.rpc_communicator import (
-    RpcCommunicator,
-    UnityToExternalServicerImplementation,
-)
+from mlagents_envs.rpc_communicator import RpcCommunicator
 from mlagents_envs.side_channel.engine_configuration_channel import (
     EngineConfigurationChannel,
 )
@@ -57,6 +48,7 @@ from mlagents_envs.side_channel.environment_parameters_channel import (
 )
 from mlagents_envs.side_channel.stats_side_channel import StatsSideChannel
 
+from rollout.communicator import LoopbackCommunicator
 from rollout.ports import PortAllocator
 from rollout.restarts import RestartBudget, RestartPolicy, RestartRefused
 from unitysim.launcher import write_executable
@@ -160,81 +152,6 @@ def _guard_launcher(executable: str) -> str:
 
 
 # --- the mlagents subclasses ------------------------------------------------------------
-
-
-_CLOSED = object()
-
-
-class _ThreadPipe:
-    """The end of a two-way, in-process channel with the API mlagents uses of a
-    ``multiprocessing`` Connection (send / recv / poll / close), minus the pickling and
-    the syscalls: both ends live in one process (the gRPC handler thread and ours)."""
-
-    def __init__(self, inbox: queue.SimpleQueue, outbox: queue.SimpleQueue) -> None:
-        self._inbox, self._outbox = inbox, outbox
-        self._stash: list[object] = []
-
-    def send(self, message: object) -> None:
-        self._outbox.put(message)
-
-    def poll(self, timeout: float = 0.0) -> bool:
-        if not self._stash:
-            try:
-                self._stash.append(
-                    self._inbox.get(timeout=timeout) if timeout else self._inbox.get_nowait()
-                )
-            except queue.Empty:
-                return False
-        return True
-
-    def recv(self) -> object:
-        message = self._stash.pop() if self._stash else self._inbox.get()
-        if message is _CLOSED:
-            self._inbox.put(_CLOSED)  # wake any other reader too
-            raise EOFError("the other end closed the channel")
-        return message
-
-    def close(self) -> None:
-        self._outbox.put(_CLOSED)
-
-
-class _ThreadedServicer(UnityToExternalServicerImplementation):
-    """mlagents' servicer with the multiprocessing Pipe replaced by in-process queues."""
-
-    def __init__(self) -> None:  # no super().__init__(): it would open a Pipe
-        to_python: queue.SimpleQueue = queue.SimpleQueue()
-        to_unity: queue.SimpleQueue = queue.SimpleQueue()
-        self.parent_conn = _ThreadPipe(inbox=to_python, outbox=to_unity)
-        self.child_conn = _ThreadPipe(inbox=to_unity, outbox=to_python)
-
-
-class LoopbackCommunicator(RpcCommunicator):
-    """mlagents' server, but on 127.0.0.1 only and without SO_REUSEPORT, so a second
-    server on the same port fails loudly instead of splitting the traffic; the gRPC
-    thread hands messages over through in-process queues instead of a pickling Pipe."""
-
-    def __init__(self, port: int, timeout_wait: int, on_bound: Callable[[int], None]) -> None:
-        self._on_bound = on_bound
-        super().__init__(worker_id=0, base_port=port, timeout_wait=timeout_wait)
-
-    def create_server(self) -> None:
-        server = grpc.server(
-            thread_pool=ThreadPoolExecutor(max_workers=10),
-            options=(("grpc.so_reuseport", 0),),
-        )
-        self.unity_to_external = _ThreadedServicer()
-        add_UnityToExternalProtoServicer_to_server(self.unity_to_external, server)
-        try:
-            bound = server.add_insecure_port(f"127.0.0.1:{self.port}")
-        except RuntimeError:
-            bound = 0
-        if bound != self.port:
-            server.stop(None)
-            raise UnityWorkerInUseException(self.worker_id)
-        server.start()
-        self.server = server
-        self.is_open = True
-        self._on_bound(self.port)
 
 
 class GuardedUnityEnvironment(UnityEnvironment):
