@@ -98,6 +98,7 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
         progress=not args.no_progress and sys.stdout.isatty(),
         num_areas=args.num_areas,
         restarts=restarts,
+        timeout_wait=args.timeout_wait,
     )
     try:
         result = train(options, starting)
@@ -234,6 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--num-areas", type=int, default=1, help="training areas per Unity")
     train.add_argument("--cpus", type=int, default=2, help="local mode: ray.init(num_cpus)")
     train.add_argument("--address", help="join an existing Ray cluster (e.g. auto in a job)")
+    train.add_argument(
+        "--timeout-wait",
+        type=int,
+        default=60,
+        help="seconds to wait for Unity to connect, or to answer a step (as mlagents-learn)",
+    )
     defaults = RestartPolicy()
     train.add_argument(
         "--max-lifetime-restarts",

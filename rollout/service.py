@@ -188,6 +188,10 @@ class RolloutService:
             ray.get(closing, timeout=60)
         except Exception as error:  # a dead worker: its launch guard already took the player
             log.warning("while closing workers: %s", error)
+        finished, _ = ray.wait(list(self._collects), num_returns=len(self._collects), timeout=0)
+        for ref in finished:  # read, so that Ray does not report their errors as unhandled
+            with contextlib.suppress(Exception):
+                ray.get(ref)
         for worker in self.workers:
             ray.kill(worker, no_restart=True)
         self.workers = []

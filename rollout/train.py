@@ -61,6 +61,7 @@ class TrainOptions:
     progress: bool = True
     num_areas: int = 1
     restarts: RestartPolicy = field(default_factory=RestartPolicy)  # of each Unity instance
+    timeout_wait: int = 60  # seconds for Unity to connect or answer (mlagents-learn's)
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,8 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
         raise TrainingError("--env editor: there is one editor (port 5004), so use --workers 1")
     if options.workers < 1:
         raise TrainingError(f"--workers: at least 1, got {options.workers}")
+    if options.timeout_wait < 1:
+        raise TrainingError(f"--timeout-wait: at least 1 (seconds), got {options.timeout_wait}")
     try:
         resolve_build(build)
     except UnityError as error:
@@ -119,6 +122,7 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
         env_params=dict(config.environment_parameters),
         log_folder=str(run_dir / "unity-logs"),
         restarts=options.restarts,
+        timeout_wait=options.timeout_wait,
     )
 
 
@@ -186,7 +190,15 @@ def train(options: TrainOptions, starting: BackgroundRay | None = None) -> Train
     config = load_run_config(options)
     run_dir, resume = prepare_run_dir(options)
     unity = unity_config(options, config, run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:  # before Unity and the learner start: a run that cannot write would lose its checkpoints
+        run_dir.mkdir(parents=True, exist_ok=True)
+        probe = run_dir / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as error:
+        raise TrainingError(
+            f"--results-dir: cannot write {run_dir} ({error.strerror}); choose a writable one"
+        ) from None
     for problem in config.unsupported:
         log.warning("%s: not supported by unity-rollout, ignored", problem)
     (run_dir / "configuration.yaml").write_text(

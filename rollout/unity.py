@@ -15,6 +15,7 @@ import contextlib
 import hashlib
 import logging
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -73,6 +74,10 @@ RECOVERABLE = (
 
 class UnityError(RuntimeError):
     """A problem no restart can fix (bad build path, incompatible version, budget spent)."""
+
+
+class UnityStartError(UnityError):
+    """A launch that never connected: fatal at a run's start, a failed start in a restart."""
 
 
 @dataclass(frozen=True)
@@ -255,14 +260,28 @@ class UnityInstance:
             )
         except UnityEnvironmentException as error:
             self.allocator.release(port)
-            if "not compatible" in str(error):
-                raise UnityError(f"{config.build}: {str(error).splitlines()[0]}") from None
-            raise
+            first = str(error).splitlines()[0]
+            if "not compatible" in first:
+                raise UnityError(f"{config.build}: {first}") from None
+            exited = re.search(r"return code (-?\d+)", first)
+            what = f"the player exited with code {exited.group(1)}" if exited else first
+            detail = f"{what} before it connected{self._log()}"
+            raise UnityStartError(f"{config.build}: {detail}") from None
+        except UnityTimeOutException:
+            self.allocator.release(port)
+            raise UnityStartError(
+                f"{config.build}: did not connect within timeout_wait ({config.timeout_wait} s)"
+                f"{self._log()}"
+            ) from None
         except BaseException:
             self.allocator.release(port)
             raise
         self.port = port
         log.info("Unity %s on port %d (pid %s)", config.build, port, self.env.player_pid)
+
+    def _log(self) -> str:
+        folder = self.config.log_folder
+        return f"; its log: {folder}/Player-0.log" if folder and self.executable else ""
 
     def close(self, failed: bool = False) -> None:
         """``failed``: the player crashed or hangs, so it gets no grace period to exit."""
@@ -290,6 +309,8 @@ class UnityInstance:
             try:
                 self.start()
                 return
+            except UnityStartError as error:
+                reason = str(error)
             except UnityError:
                 raise
             except RECOVERABLE as error:

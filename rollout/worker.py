@@ -45,7 +45,11 @@ class RolloutWorker:
         )
         allocator = PortAllocator(port_range, registry_dir)
         self.collector = Collector(unity, actor_factory, horizon, index, allocator)
-        self.collector.start()
+        self._start_error: Exception | None = None
+        try:
+            self.collector.start()
+        except Exception as error:  # said by the first collect: a failed __init__ would
+            self._start_error = error  # have Ray restart the actor and launch again
 
     def collect(
         self,
@@ -57,6 +61,8 @@ class RolloutWorker:
         """``published``: the learner's ``weights()`` result, (version, weights), or None
         when this worker already has the newest version. A restart that no call saw (the
         worker died while idle) shows here: the service would otherwise never resend weights."""
+        if self._start_error is not None:
+            raise self._start_error
         if published is None and self.collector.version < version:
             raise WeightsLost(f"worker has version {self.collector.version}, sent {version}")
         if published is not None:

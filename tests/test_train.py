@@ -169,6 +169,8 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
         (TrainOptions(workers=0), "--workers: at least 1"),
         (TrainOptions(env="/nonexistent/Game.x86_64"), "/nonexistent/Game"),
         (TrainOptions(config="/nonexistent.yaml"), "/nonexistent.yaml"),
+        (TrainOptions(config="/"), "/: cannot read"),  # a directory
+        (TrainOptions(timeout_wait=0), "--timeout-wait: at least 1"),
     ],
 )
 def test_bad_options_are_one_line_errors_before_anything_starts(options, message, tmp_path):
@@ -177,6 +179,14 @@ def test_bad_options_are_one_line_errors_before_anything_starts(options, message
         train(options)
     assert "\n" not in str(error.value)
     assert not list(tmp_path.iterdir()), "nothing written for a run that could not start"
+
+
+def test_a_results_dir_that_cannot_be_written_is_a_one_line_error(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    options = TrainOptions(env="unitysim:Basic", results_dir=str(blocker / "results"))
+    with pytest.raises(TrainingError, match=r"--results-dir: cannot write .*a-file/results/run"):
+        train(options)
 
 
 def test_summaries_follow_each_behaviors_summary_freq(tmp_path):

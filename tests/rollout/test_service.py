@@ -310,3 +310,29 @@ def test_a_hung_player_stalls_neither_the_driver_nor_the_run(ray_session, regist
     ray_session.kill(learner)
     assert service.metrics.unity_restarts >= 2
     assert longest < 1.0 + REPORT_WAIT_S + 5.0, f"a run of 1 s took {longest:.1f} s"
+
+
+def test_a_build_that_exits_at_once_ends_the_run_at_once(ray_session, registry, tmp_path):
+    """Its worker stays alive and says why on its first collect: no actor restarts, no
+    relaunches, one line."""
+    build = tmp_path / "Game.x86_64"
+    build.write_text("#!/bin/sh\nexit 0\n")
+    build.chmod(0o755)
+    learner = ray_session.remote(CountingLearner).remote()
+    config = ServiceConfig(
+        UnityConfig(str(build)),
+        num_workers=1,
+        horizon=8,
+        worker_cpus=0.5,
+        port_range=PORTS,
+        registry_dir=registry,
+    )
+    service = RolloutService(config, actor_factory, learner)
+    try:
+        service.start()
+        with pytest.raises(RolloutError, match="exited with code 0 before it connected") as error:
+            service.run(seconds=60)
+        assert "\n" not in str(error.value) and service.metrics.worker_restarts == 0
+    finally:
+        service.stop()
+        ray_session.kill(learner)

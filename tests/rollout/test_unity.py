@@ -16,7 +16,14 @@ import pytest
 
 from rollout.ports import PortAllocator, PortRange
 from rollout.restarts import RestartPolicy
-from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance, resolve_build
+from rollout.unity import (
+    RECOVERABLE,
+    UnityConfig,
+    UnityError,
+    UnityInstance,
+    UnityStartError,
+    resolve_build,
+)
 from tests.helpers import leak_checked_allocator, wait_gone
 
 pytestmark = pytest.mark.integration
@@ -240,3 +247,34 @@ def test_editor_mode_leases_5004_and_plays(allocator):
         if editor.poll() is None:
             editor.kill()
             editor.wait()
+
+
+@pytest.mark.parametrize(
+    ("script", "message"),
+    [
+        ("exit 0", "the player exited with code 0 before it connected"),
+        ("exec sleep 600", "did not connect within timeout_wait (2 s)"),
+    ],
+    ids=["exits", "silent"],
+)
+def test_a_build_that_never_connects_is_one_line_naming_its_log(
+    allocator, tmp_path, script, message
+):
+    build = tmp_path / "Game.x86_64"
+    build.write_text(f"#!/bin/sh\n{script}\n")
+    build.chmod(0o755)
+    config = UnityConfig(str(build), timeout_wait=2, log_folder=str(tmp_path / "logs"))
+    with pytest.raises(UnityStartError) as error:
+        UnityInstance(config, allocator).start()
+    assert message in str(error.value) and "\n" not in str(error.value)
+    assert str(error.value).endswith(f"its log: {tmp_path}/logs/Player-0.log")
+
+
+def test_a_build_path_with_spaces_launches(allocator, tmp_path):
+    from unitysim.launcher import build as build_launchers
+
+    (launcher,) = build_launchers(tmp_path / "My Game" / "Build 1", ["Basic"])
+    with UnityInstance(UnityConfig(str(launcher)), allocator) as unity:
+        unity.reset()
+        unity.step()
+        assert len(unity.get_steps("Basic?team=0")[0]) == 1
