@@ -50,3 +50,29 @@ def test_bad_build_path_is_a_one_line_error():
     )
     assert result.returncode == 2
     assert "no Unity build at '/no/such/Game'" in " ".join(result.stdout.split())
+
+
+def test_restart_flags_as_mlagents_learn_names_them():
+    result = subprocess.run(
+        [sys.executable, "-m", "rollout.cli", "train", "--help"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    for flag in (
+        "--max-lifetime-restarts",
+        "--restarts-rate-limit-n",
+        "--restarts-rate-limit-period-s",
+        "--timeout-wait",
+    ):
+        assert flag in result.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "rollout.cli", "train", "--restarts-rate-limit-period-s", "0"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2
+    assert "--restarts-rate-limit-period-s: positive, got 0" in " ".join(bad.stderr.split())

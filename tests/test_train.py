@@ -219,3 +219,14 @@ def test_engine_settings_reach_the_unity_config(tmp_path):
     config = parse_config({"engine_settings": {"time_scale": 5, "no_graphics": False}})
     unity = unity_config(TrainOptions(), config, tmp_path)
     assert unity.engine.time_scale == 5 and unity.no_graphics is False
+
+
+def test_restart_limits_and_timeout_reach_every_unity_instance(tmp_path):
+    from rollout.restarts import RestartPolicy
+    from rollout.train import load_run_config, unity_config
+
+    options = TrainOptions(
+        env="unitysim:Basic", restarts=RestartPolicy(rate_limit_n=3), timeout_wait=7
+    )
+    unity = unity_config(options, load_run_config(options), tmp_path)
+    assert unity.restarts == RestartPolicy(rate_limit_n=3) and unity.timeout_wait == 7
