@@ -25,9 +25,10 @@ from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
 from rollout.ports import PortAllocator
 from rollout.segments import Decisions, Segment, SegmentBuilder, allowed_mask
-from rollout.unity import RECOVERABLE, UnityConfig, UnityInstance
+from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance
 
 log = logging.getLogger(__name__)
+NO_AGENT_STEPS = 3000  # environment steps without any agent before a run gives up on a build
 
 
 class Actor(Protocol):
@@ -92,6 +93,7 @@ class Collector:
         self.version = 0
         self.metrics = CollectorMetrics()
         self._started = False
+        self._agents_seen = False  # any agent of any behavior, ever
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -136,6 +138,12 @@ class Collector:
             except RECOVERABLE as error:
                 self._recover(error)
                 continue
+            if not self._agents_seen and self.metrics.env_steps >= NO_AGENT_STEPS:
+                raise UnityError(
+                    f"{self.unity.config.build}: no agent asked for a decision in "
+                    f"{NO_AGENT_STEPS} steps: check that the agents' Behavior Type is Default "
+                    "(not Heuristic Only) and that they request decisions (DecisionRequester)"
+                )
             if steps >= min_steps or (deadline is not None and time.perf_counter() >= deadline):
                 break
         self.metrics.seconds += time.perf_counter() - started
@@ -146,6 +154,7 @@ class Collector:
         for behavior, spec in unity.behavior_specs.items():
             builder = self.builders.get(behavior) or self._add_behavior(behavior, spec)
             decisions, terminals = unity.get_steps(behavior)
+            self._agents_seen = self._agents_seen or bool(len(decisions) or len(terminals))
             builder.observe(decisions, terminals)
             finished = builder.collect(self.metrics.env_steps)
             if finished is not None:

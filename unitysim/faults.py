@@ -21,6 +21,7 @@ class Faults:
     status_code: int = 500
     oversize_after: int | None = None  # send a message over gRPC's 4 MiB limit
     nan_after: int | None = None  # send NaN observations
+    silent_after: int | None = None  # no agent asks for a decision (Behavior Type: Heuristic)
     communication_version: str | None = None  # announce this API version in the handshake
 
     @classmethod

@@ -193,7 +193,7 @@ class Player:
     def _corrupt(self, encoded: bytes, session: Session) -> tuple[bytes, int]:
         """Apply the faults due at this step; returns the bytes to send and their status."""
         faults, step = self.faults, session.steps
-        due = (faults.status_after, faults.nan_after, faults.oversize_after)
+        due = (faults.status_after, faults.nan_after, faults.oversize_after, faults.silent_after)
         if not any(faults.due(after, step) for after in due):
             return encoded, 200
         message = messages.UnityMessageProto.FromString(encoded)
@@ -207,6 +207,9 @@ class Player:
                         if observation.HasField("float_data"):
                             data = observation.float_data.data
                             data[:] = [float("nan")] * len(data)
+        if faults.due(faults.silent_after, step):
+            for listed in message.unity_output.rl_output.agentInfos.values():
+                del listed.value[:]
         if faults.due(faults.oversize_after, step):
             log.error("fault: sending an oversized message at step %d", step)
             padding = frame(_OVERSIZE_CHANNEL, b"\0" * OVERSIZE_BYTES)

@@ -14,10 +14,10 @@ from tensordict import TensorDict
 
 from learners.acting import actor_factory
 from rollout import keys
-from rollout.collector import Collector
+from rollout.collector import NO_AGENT_STEPS, Collector
 from rollout.restarts import RestartPolicy
 from rollout.specs import step_spec
-from rollout.unity import UnityConfig
+from rollout.unity import UnityConfig, UnityError
 from tests.helpers import leak_checked_allocator, trajectories
 
 pytestmark = pytest.mark.integration
@@ -163,5 +163,19 @@ def test_3dball_rows_are_cut_at_the_horizon_and_weights_versions_are_stamped(all
         assert abs(float(actions.mean())) < 0.2 and 0.8 < float(actions.std()) < 1.2
         reward = torch.cat([s[keys.NEXT, keys.REWARD] for s in fresh])
         assert set(np.round(reward.unique().double().numpy(), 3).tolist()) <= {0.1, -1.0}
+    finally:
+        collector.close()
+
+
+def test_a_build_whose_agents_never_ask_for_decisions_is_one_line(allocator):
+    """As a build with every agent on Behavior Type "Heuristic Only": the run ends with
+    what to check instead of stepping forever without data."""
+    config = UnityConfig("unitysim:3DBall", additional_args=("--sim-silent-after", "0"))
+    collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
+    try:
+        with pytest.raises(UnityError, match="no agent asked for a decision in 3000") as error:
+            collector.collect(min_steps=1)
+        assert "\n" not in str(error.value)
+        assert collector.metrics.env_steps == NO_AGENT_STEPS
     finally:
         collector.close()
