@@ -230,3 +230,41 @@ def test_restart_limits_and_timeout_reach_every_unity_instance(tmp_path):
     )
     unity = unity_config(options, load_run_config(options), tmp_path)
     assert unity.restarts == RestartPolicy(rate_limit_n=3) and unity.timeout_wait == 7
+
+
+def test_two_runs_on_one_node_share_the_port_registry(tmp_path):
+    """Two `unity-rollout train` at once, each with its own local Ray: four Unity
+    instances, four distinct ports from the one registry, no instance restarted (a port
+    clash would have cost a restart, and a quarantined port more)."""
+    from rollout.ports import REGISTRY_VARIABLE, PortAllocator
+
+    registry = tmp_path / "registry"
+    marker = uuid.uuid4().hex
+    env = {**os.environ, REGISTRY_VARIABLE: str(registry), "UNITY_ROLLOUT_TEST_RUN": marker}
+    command = [sys.executable, "-m", "rollout.cli", "train", "--env", "unitysim:Basic"]
+    command += ["--no-progress", "--max-steps", "2000", "--results-dir", str(tmp_path)]
+    command += ["--cpus", "1", "--max-seconds", "300"]
+    runs = [
+        subprocess.Popen(
+            [*command, "--run-id", f"run{index}"],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        for index in range(2)
+    ]
+    try:
+        outputs = [run.communicate(timeout=600)[0].decode() for run in runs]
+    finally:
+        for run in runs:
+            if run.poll() is None:
+                os.killpg(run.pid, signal.SIGKILL)
+                run.wait()
+    assert [run.returncode for run in runs] == [0, 0], outputs
+    ports = PortAllocator(registry_dir=registry).quarantined()
+    assert len(ports) == 4, ports
+    deadline = time.monotonic() + 30
+    while run_marked(marker) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not run_marked(marker)
