@@ -17,13 +17,14 @@ from __future__ import annotations
 import math
 import zlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
 
 if TYPE_CHECKING:
+    from learners.config import RunConfig, TrainerSettings
     from learners.policies import ActorCritic, TorchActor
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
@@ -292,6 +293,24 @@ class PolicyFactory:
         from learners.policies import TorchActor  # images: this worker needs torch
 
         return TorchActor(self.network(behavior, spec))
+
+
+def network_settings(settings: TrainerSettings) -> NetworkSettings:
+    """A behavior's network settings; SAC behaviors get ML-Agents' squashed policy
+    (``tanh_squash``, ``conditional_sigma``), in the learner and in every worker alike."""
+    if settings.trainer_type == "sac":
+        return replace(settings.network_settings, tanh_squash=True, conditional_sigma=True)
+    return settings.network_settings
+
+
+def policy_factory(config: RunConfig, seed: int = 0) -> PolicyFactory:
+    """The factory workers and learner share: network settings of each configured behavior,
+    initial weights from the run's seed."""
+    return PolicyFactory(
+        {name: network_settings(s) for name, s in config.behaviors.items()},
+        network_settings(config.default),
+        seed,
+    )
 
 
 actor_factory = PolicyFactory()  # default networks: what tests and `collect` use

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from learners import checkpoint
-from learners.acting import NetworkSettings, PolicyFactory, base_name
+from learners.acting import base_name, policy_factory
 from learners.policies import ActorCritic, numpy_state
 from rollout import keys
 from rollout.segments import Segment
@@ -64,24 +64,6 @@ def make_algorithm(network: ActorCritic, settings: TrainerSettings) -> Algorithm
 
         return IMPALA(network, settings)
     raise ValueError(f"trainer_type {settings.trainer_type!r}: use ppo, sac or impala")
-
-
-def network_settings(settings: TrainerSettings) -> NetworkSettings:
-    """A behavior's network settings; SAC behaviors get ML-Agents' squashed policy
-    (``tanh_squash``, ``conditional_sigma``), in the learner and in every worker alike."""
-    if settings.trainer_type == "sac":
-        return replace(settings.network_settings, tanh_squash=True, conditional_sigma=True)
-    return settings.network_settings
-
-
-def policy_factory(config: RunConfig, seed: int = 0) -> PolicyFactory:
-    """The factory workers and learner share: network settings of each configured behavior,
-    initial weights from the run's seed."""
-    return PolicyFactory(
-        {name: network_settings(s) for name, s in config.behaviors.items()},
-        network_settings(config.default),
-        seed,
-    )
 
 
 def policy_lag(updates: list[int], acted: torch.Tensor) -> torch.Tensor:
@@ -229,25 +211,4 @@ class CentralLearner:
             behavior.updates = [int(v) for v in entry["updates"]]
 
 
-def learner_actor(
-    config: RunConfig, max_steps: int | None = None, num_cpus: float = 0, seed: int = 0
-) -> Any:
-    """Start the learner as a Ray actor (imported here so the class itself needs no Ray).
-
-    ``progress`` and ``drain_reports`` answer on a thread of their own: the driver's
-    summaries and checks do not wait for an update in progress (mlagents-learn writes a
-    summary before the update that follows it, too)."""
-    import ray
-
-    class RayLearner(CentralLearner):
-        progress = ray.method(concurrency_group="status")(CentralLearner.progress)
-        drain_reports = ray.method(concurrency_group="status")(CentralLearner.drain_reports)
-
-    remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
-    remote = remote.options(num_cpus=num_cpus)
-    learner = remote.remote(config, max_steps, 1, seed)
-    learner.prepare.remote()  # while the workers start
-    return learner
-
-
-__all__ = ["Algorithm", "CentralLearner", "base_name", "learner_actor", "policy_factory"]
+__all__ = ["Algorithm", "CentralLearner", "base_name", "policy_factory"]

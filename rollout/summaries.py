@@ -23,7 +23,9 @@ from typing import Any
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
-from torch.utils.tensorboard import SummaryWriter
+from tensorboard.compat.proto.event_pb2 import Event
+from tensorboard.compat.proto.summary_pb2 import Summary
+from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
 from rollout.service import ServiceMetrics
 
@@ -33,6 +35,24 @@ _RATE_TAGS = {
     "capacity": "Perf/Learner Samples per Busy Second",
     "busy": "Perf/Learner Busy Fraction",
 }
+
+
+class ScalarWriter:
+    """TensorBoard scalars into ``events.out.tfevents.*`` files, as torch's SummaryWriter
+    writes them (it uses the same EventFileWriter), without loading torch in the driver."""
+
+    def __init__(self, log_dir: str) -> None:
+        self._events = EventFileWriter(log_dir)
+
+    def add_scalar(self, tag: str, value: float, step: int) -> None:
+        summary = Summary(value=[Summary.Value(tag=tag, simple_value=float(value))])
+        self._events.add_event(Event(wall_time=time.time(), step=int(step), summary=summary))
+
+    def flush(self) -> None:
+        self._events.flush()
+
+    def close(self) -> None:
+        self._events.close()
 
 
 def next_multiple(step: int, every: int) -> int:
@@ -64,7 +84,7 @@ class Summaries:
     ) -> None:
         self.run_dir = run_dir
         self.summary_freq = summary_freq
-        self.writers: dict[str, SummaryWriter] = {}
+        self.writers: dict[str, ScalarWriter] = {}
         self.windows: dict[str, _Window] = {}
         self.console = console or Console()
         self.live = Live(console=self.console, auto_refresh=False) if progress else None
@@ -135,7 +155,7 @@ class Summaries:
     ) -> None:
         writer = self.writers.get(behavior)
         if writer is None:
-            writer = self.writers[behavior] = SummaryWriter(str(self.run_dir / _safe(behavior)))
+            writer = self.writers[behavior] = ScalarWriter(str(self.run_dir / _safe(behavior)))
         if totals is not None:
             episodes, return_sum, length_sum = totals
             new = episodes - window.episodes

@@ -28,9 +28,9 @@ import psutil
 import ray
 import yaml
 
-from learners import checkpoint
+from learners.acting import policy_factory
 from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
-from learners.learner import learner_actor, policy_factory
+from learners.remote import learner_actor
 from rollout.local_ray import BackgroundRay, init_local_ray
 from rollout.restarts import RestartPolicy
 from rollout.service import RolloutError, RolloutService, ServiceConfig
@@ -90,6 +90,8 @@ def prepare_run_dir(options: TrainOptions) -> tuple[Path, dict[str, Any] | None]
     if options.resume:
         if not has_checkpoints:
             raise TrainingError(f"--resume: no checkpoint in {run_dir}/checkpoints to resume from")
+        from learners import checkpoint  # torch: only a resumed or saving driver loads it
+
         return run_dir, checkpoint.load(run_dir)
     if has_checkpoints and not options.force:
         raise TrainingError(
@@ -177,6 +179,8 @@ class Checkpoints:
 
     def save(self, state: dict[str, Any], meta: dict[str, Any]) -> Path:
         step = int(state["step"])
+        from learners import checkpoint
+
         path = checkpoint.save(self.directory / f"step-{step:010d}.pt", {**state, "meta": meta})
         self.next_step = next_multiple(step, self.interval)
         for old in sorted(self.directory.glob("step-*.pt"))[: -self.keep]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -11,28 +12,25 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.integration
-def test_collect_runs_the_pipeline_and_cleans_up(tmp_path):
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "rollout.cli",
-            "collect",
-            "--env",
-            "unitysim:Basic",
-            "--workers",
-            "1",
-            "--seconds",
-            "6",
-            "--horizon",
-            "16",
-        ],
+def cli(*args: str, timeout: float = 120, **env: str) -> subprocess.CompletedProcess:
+    """``unity-rollout ARGS`` from the checkout, as a user runs it."""
+    return subprocess.run(
+        [sys.executable, "-m", "rollout.cli", *args],
         cwd=ROOT,
         capture_output=True,
         text=True,
+        timeout=timeout,
+        env={**os.environ, **env},
+    )
+
+
+@pytest.mark.integration
+def test_collect_runs_the_pipeline_and_cleans_up(tmp_path):
+    result = cli(
+        *("collect", "--env", "unitysim:Basic", "--workers", "1", "--seconds", "6"),
+        *("--horizon", "16"),
         timeout=240,
-        env={**__import__("os").environ, "UNITY_ROLLOUT_RUNTIME_DIR": str(tmp_path)},
+        UNITY_ROLLOUT_RUNTIME_DIR=str(tmp_path),
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "agent steps" in result.stdout
@@ -41,25 +39,13 @@ def test_collect_runs_the_pipeline_and_cleans_up(tmp_path):
 
 
 def test_bad_build_path_is_a_one_line_error():
-    result = subprocess.run(
-        [sys.executable, "-m", "rollout.cli", "collect", "--env", "/no/such/Game"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = cli("collect", "--env", "/no/such/Game")
     assert result.returncode == 2
     assert "no Unity build at '/no/such/Game'" in " ".join(result.stdout.split())
 
 
 def test_restart_flags_as_mlagents_learn_names_them():
-    result = subprocess.run(
-        [sys.executable, "-m", "rollout.cli", "train", "--help"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = cli("train", "--help")
     for flag in (
         "--max-lifetime-restarts",
         "--restarts-rate-limit-n",
@@ -67,12 +53,6 @@ def test_restart_flags_as_mlagents_learn_names_them():
         "--timeout-wait",
     ):
         assert flag in result.stdout
-    bad = subprocess.run(
-        [sys.executable, "-m", "rollout.cli", "train", "--restarts-rate-limit-period-s", "0"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    bad = cli("train", "--restarts-rate-limit-period-s", "0")
     assert bad.returncode == 2
     assert "--restarts-rate-limit-period-s: positive, got 0" in " ".join(bad.stderr.split())

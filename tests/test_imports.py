@@ -93,16 +93,17 @@ DRIVER = "import rollout.cli, rollout.train\n"  # `unity-rollout train`, before 
     ("process", "script", "expected", "absent"),
     [
         ("worker", WORKER, ("rollout.collector", "learners.acting"), ("torch",)),
-        ("driver", DRIVER, ("rollout.service", "learners.learner"), ()),
+        ("driver", DRIVER, ("rollout.service", "learners.remote"), ("torch",)),
     ],
 )
-def test_workers_and_the_driver_load_neither_tensordict_nor_torchrl(
+def test_workers_and_the_driver_load_neither_torch_nor_tensordict_nor_torchrl(
     process, script, expected, absent
 ):
     """tensordict and torchrl (with torch._dynamo) took most of a worker's start, and a
     second of the driver's CPU while Ray starts; segments travel as numpy and become
     TensorDicts in the learner's process only. A worker acting on vector observations
-    loads no torch either (1.3 s of CPU and about 180 MB)."""
+    loads no torch either (1.3 s of CPU and about 180 MB), nor does the driver before its
+    first checkpoint (the learner's process does)."""
     script = f"import json, sys\n{script}print(json.dumps(sorted(sys.modules)))\n"
     result = subprocess.run(
         [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120

@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from learners.acting import NetworkSettings, NumpyActor
+from learners.acting import NetworkSettings, NumpyActor, policy_factory
 from learners.config import defaults, load_config
-from learners.learner import policy_factory
 from learners.policies import ActorCritic, numpy_state
 from learners.sac import MAX_GRADIENT_STEPS, SAC, next_mask
 from rollout import keys

@@ -1,4 +1,4 @@
-"""The learner as a Ray actor (``learners.learner.learner_actor``): the driver's status
+"""The learner as a Ray actor (``learners.remote.learner_actor``): the driver's status
 calls answer while an update runs."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import time
 import pytest
 
 from learners.config import parse_config
-from learners.learner import learner_actor
+from learners.remote import learner_actor
 from tests.learners.fakes import segment, vector_spec
 
 pytestmark = pytest.mark.integration
@@ -39,8 +39,8 @@ def test_progress_answers_while_an_update_runs(ray_session):
                 break
             time.sleep(0.05)
         ready, _ = ray_session.wait([updating], timeout=0)
-        assert ready == [], "progress waited for the update"
-        assert progress["steps"] == {"A?team=0": 4160} and progress["version"] == 0
+        assert ready == [], f"progress waited for the update: {progress}"
+        assert progress["steps"] == {"A?team=0": 4160} and progress["version"] == 0, progress
         assert ray_session.get(updating, timeout=300)[0] == 1
         assert ray_session.get(learner.progress.remote())["version"] == 1
         assert [b for b, _, _ in ray_session.get(learner.drain_reports.remote())] == ["A?team=0"]

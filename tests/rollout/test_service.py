@@ -34,6 +34,21 @@ def registry(tmp_path):
     assert PortAllocator(PORTS, directory).leases() == {}, "a test left a port leased"
 
 
+def service_config(
+    unity: UnityConfig, registry: str, workers: int = 2, horizon: int = 16, **options: int
+) -> ServiceConfig:
+    """Half a CPU per worker, the test port range and registry."""
+    return ServiceConfig(
+        unity,
+        num_workers=workers,
+        horizon=horizon,
+        worker_cpus=0.5,
+        port_range=PORTS,
+        registry_dir=registry,
+        **options,
+    )
+
+
 def start_worker(ray, registry: str, build: str, horizon: int = 16, **unity):
     worker = RolloutWorker.options(num_cpus=0.5, max_restarts=0).remote(
         0, UnityConfig(build, **unity), actor_factory, horizon, PORTS, registry
@@ -150,13 +165,8 @@ def test_grid_food_collector_hybrid_actions(ray_session, registry):
 
 def test_service_routes_segments_and_weights_and_survives_a_killed_worker(ray_session, registry):
     learner = ray_session.remote(CountingLearner).remote(bump_every=2)
-    config = ServiceConfig(
-        UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
-        num_workers=2,
-        horizon=16,
-        worker_cpus=0.5,
-        port_range=PORTS,
-        registry_dir=registry,
+    config = service_config(
+        UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)), registry
     )
     service = RolloutService(config, actor_factory, learner)
     try:
@@ -187,14 +197,7 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
     what collects already under way and rows in progress can add."""
     demand, horizon, workers = 600, 8, 2
     learner = ray_session.remote(CountingLearner).remote(demand=demand, update_seconds=2.5)
-    config = ServiceConfig(
-        UnityConfig("unitysim:3DBall"),
-        num_workers=workers,
-        horizon=horizon,
-        worker_cpus=0.5,
-        port_range=PORTS,
-        registry_dir=registry,
-    )
+    config = service_config(UnityConfig("unitysim:3DBall"), registry, workers, horizon)
     with RolloutService(config, actor_factory, learner) as service:
         service.run(until=lambda m: m.segments > 0, seconds=120)
         service.run(seconds=12)
@@ -217,14 +220,11 @@ def test_a_killed_worker_is_one_failure_however_long_ray_takes_to_restart_it(ray
     it fail at once as "unavailable"; those retries must not count as more deaths, or a
     budget of one restart would end the run."""
     learner = ray_session.remote(CountingLearner).remote()
-    config = ServiceConfig(
+    config = service_config(
         UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
-        num_workers=1,
-        horizon=16,
-        worker_cpus=0.5,
+        registry,
+        workers=1,
         max_worker_restarts=1,
-        port_range=PORTS,
-        registry_dir=registry,
     )
     with RolloutService(config, actor_factory, learner) as service:
         service.run(agent_steps=500)
@@ -245,9 +245,7 @@ def test_a_worker_whose_unity_keeps_failing_ends_the_run_with_its_cause(ray_sess
         additional_args=("--sim-crash-after", "2"),
         restarts=RestartPolicy(max_lifetime_restarts=1, backoff_s=0),
     )
-    config = ServiceConfig(
-        unity, num_workers=1, horizon=8, worker_cpus=0.5, port_range=PORTS, registry_dir=registry
-    )
+    config = service_config(unity, registry, workers=1, horizon=8)
     with (
         RolloutService(config, actor_factory, learner) as service,
         pytest.raises(RolloutError, match=r"worker 0: .*lifetime limit of 1 restarts reached"),
@@ -294,9 +292,7 @@ def test_a_hung_player_stalls_neither_the_driver_nor_the_run(ray_session, regist
         timeout_wait=15,
         restarts=RestartPolicy(backoff_s=0.0),
     )
-    config = ServiceConfig(
-        unity, num_workers=2, horizon=16, worker_cpus=0.5, port_range=PORTS, registry_dir=registry
-    )
+    config = service_config(unity, registry)
     with RolloutService(config, actor_factory, learner) as service:
         service.run(agent_steps=1000)
         longest, deadline = 0.0, time.monotonic() + 120
@@ -319,14 +315,7 @@ def test_a_build_that_exits_at_once_ends_the_run_at_once(ray_session, registry, 
     build.write_text("#!/bin/sh\nexit 0\n")
     build.chmod(0o755)
     learner = ray_session.remote(CountingLearner).remote()
-    config = ServiceConfig(
-        UnityConfig(str(build)),
-        num_workers=1,
-        horizon=8,
-        worker_cpus=0.5,
-        port_range=PORTS,
-        registry_dir=registry,
-    )
+    config = service_config(UnityConfig(str(build)), registry, workers=1, horizon=8)
     service = RolloutService(config, actor_factory, learner)
     try:
         service.start()
