@@ -18,9 +18,8 @@ from __future__ import annotations
 
 import difflib
 import logging
-import math
 import re
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -29,17 +28,31 @@ from typing import Any
 import yaml
 
 from learners.acting import NetworkSettings, base_name
+from learners.config_keys import (
+    ALWAYS,
+    ENGINE,
+    ENGINE_UNSUPPORTED,
+    EXTRINSIC,
+    HYPER,
+    HYPER_UNSUPPORTED,
+    NETWORK,
+    NETWORK_UNSUPPORTED,
+    REWARD_UNSUPPORTED,
+    RUN_KEYS,
+    RUN_UNSUPPORTED,
+    SECTIONS,
+    TOP,
+    TOP_UNSUPPORTED,
+    ConfigError,
+    parse_number,
+    show,
+)
 
 logger = logging.getLogger(__name__)
 
 TRAINER_TYPES = ("ppo", "sac", "impala")
-SCHEDULES = ("linear", "constant")
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 UNITYSIM_PREFIX = "unitysim:"
-
-
-class ConfigError(ValueError):
-    """A trainer config we cannot run; the message is one line starting with the key path."""
 
 
 @dataclass(frozen=True)
@@ -114,149 +127,6 @@ def defaults(trainer_type: str = "ppo") -> TrainerSettings:
     raise ConfigError(f"trainer_type: {_trainer_type_problem(trainer_type)}")
 
 
-# ---- value checks: each returns the parsed value or raises ConfigError at `path` ----------
-
-_FLOAT_TEXT = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
-Check = Callable[[str, object], Any]
-
-
-def _number(path: str, value: object, what: str) -> float:
-    """A finite number: ints, floats and the strings PyYAML leaves for ``3.0e-4``."""
-    text_ok = isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()) is not None
-    if isinstance(value, bool) or not (isinstance(value, int | float) or text_ok):
-        raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
-    number = float(value)  # type: ignore[arg-type]
-    if not math.isfinite(number):
-        raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
-    return number
-
-
-def _float(low: float | None = None, high: float | None = None, *, open_low: bool = False) -> Check:
-    """A float check with an optional range (``open_low``: low itself excluded)."""
-    if low is None:
-        what = "a number"
-    elif low == 0 and high is None:
-        what = "a positive number" if open_low else "a number >= 0"
-    else:
-        what = f"a number in {'(' if open_low else '['}{low:g}, {high:g}]"
-
-    def check(path: str, value: object) -> float:
-        number = _number(path, value, what)
-        if low is not None and (number < low or (open_low and number == low)):
-            raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
-        if high is not None and number > high:
-            raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
-        return number
-
-    return check
-
-
-def _int(low: int = 1) -> Check:
-    """An integer >= ``low``; ``5.0e5`` is accepted as 500000, ``1.5`` is not."""
-    what = {1: "a positive integer", 0: "an integer >= 0"}.get(low, f"an integer >= {low}")
-
-    def check(path: str, value: object) -> int:
-        number = _number(path, value, what)
-        if number != int(number) or number < low:
-            raise ConfigError(f"{path}: expected {what}, got {_show(value)}")
-        return int(number)
-
-    return check
-
-
-def _bool(path: str, value: object) -> bool:
-    if not isinstance(value, bool):
-        raise ConfigError(f"{path}: expected true or false, got {_show(value)}")
-    return value
-
-
-def _choice(*allowed: str) -> Check:
-    def check(path: str, value: object) -> str:
-        if value not in allowed:
-            raise ConfigError(f"{path}: expected one of {', '.join(allowed)}, got {_show(value)}")
-        return str(value)
-
-    return check
-
-
-POSITIVE_INT, POSITIVE = _int(1), _float(0, open_low=True)
-
-# hyperparameters by trainer type; SHARED are valid for all three
-SHARED: dict[str, Check] = {
-    "batch_size": POSITIVE_INT,
-    "buffer_size": POSITIVE_INT,
-    "learning_rate": POSITIVE,
-    "learning_rate_schedule": _choice(*SCHEDULES),
-}
-_ON_POLICY: dict[str, Check] = {
-    "beta": _float(0),
-    "beta_schedule": _choice(*SCHEDULES),
-    "epsilon": POSITIVE,
-    "epsilon_schedule": _choice(*SCHEDULES),
-    "lambd": _float(0, 1),
-    "num_epoch": POSITIVE_INT,
-}
-HYPER: dict[str, dict[str, Check]] = {
-    "ppo": {**SHARED, **_ON_POLICY, "max_policy_lag": _int(0)},
-    "impala": {**SHARED, **_ON_POLICY, "vtrace_rho_clip": POSITIVE, "vtrace_c_clip": POSITIVE},
-    "sac": {
-        **SHARED,
-        "buffer_init_steps": _int(0),
-        "tau": _float(0, 1, open_low=True),
-        "steps_per_update": POSITIVE,
-        "init_entcoef": POSITIVE,
-    },
-}
-# ML-Agents keys we do not implement, each with the value that asks for what we do anyway
-# (not reported; ALWAYS: reported whatever the value)
-ALWAYS = object()
-HYPER_UNSUPPORTED: dict[str, dict[str, object]] = {
-    "ppo": {"shared_critic": False},
-    "impala": {"shared_critic": False},
-    "sac": {"save_replay_buffer": False, "reward_signal_steps_per_update": ALWAYS},
-}
-NETWORK: dict[str, Check] = {
-    "hidden_units": POSITIVE_INT,
-    "num_layers": POSITIVE_INT,
-    "normalize": _bool,
-    "goal_conditioning_type": _choice("hyper", "none"),
-}
-NETWORK_UNSUPPORTED: dict[str, object] = {
-    "vis_encode_type": "simple",
-    "memory": None,
-    "deterministic": False,
-}
-TOP: dict[str, Check] = {
-    "max_steps": POSITIVE_INT,
-    "time_horizon": POSITIVE_INT,
-    "summary_freq": POSITIVE_INT,
-    "checkpoint_interval": POSITIVE_INT,
-    "keep_checkpoints": POSITIVE_INT,
-}
-TOP_UNSUPPORTED: dict[str, object] = {
-    "init_path": None,
-    "threaded": ALWAYS,
-    "self_play": None,
-    "behavioral_cloning": None,
-    "even_checkpoints": False,
-}
-SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")
-EXTRINSIC: dict[str, Check] = {"gamma": _float(0, 1, open_low=True), "strength": _float(0)}
-REWARD_UNSUPPORTED = ("curiosity", "gail", "rnd")
-ENGINE: dict[str, Check] = {
-    "time_scale": POSITIVE,
-    "width": POSITIVE_INT,
-    "height": POSITIVE_INT,
-    "quality_level": _int(0),
-    "target_frame_rate": _int(-1),
-    "capture_frame_rate": _int(0),
-    "no_graphics": _bool,
-}
-ENGINE_UNSUPPORTED = ("no_graphics_monitor",)
-RUN_UNSUPPORTED = ("env_settings", "checkpoint_settings", "torch_settings", "debug")
-RUN_KEYS = ("behaviors", "default_settings", "engine_settings", "environment_parameters")
-
-
 def _all_hyper_keys() -> set[str]:
     keys = {k for table in HYPER.values() for k in table}
     return keys | {k for table in HYPER_UNSUPPORTED.values() for k in table}
@@ -265,7 +135,7 @@ def _all_hyper_keys() -> set[str]:
 def _trainer_type_problem(value: object) -> str:
     if value == "poca":
         return "'poca' is not supported; use ppo, sac or impala"
-    return f"expected one of {', '.join(TRAINER_TYPES)}, got {_show(value)}"
+    return f"expected one of {', '.join(TRAINER_TYPES)}, got {show(value)}"
 
 
 def _unknown(path: str, key: object, known: Iterable[str]) -> ConfigError:
@@ -278,18 +148,12 @@ def _unknown(path: str, key: object, known: Iterable[str]) -> ConfigError:
     )
 
 
-def _show(value: object) -> str:
-    """``repr`` cut short, so a misplaced section still makes a one-line message."""
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 def _mapping(path: str, value: object) -> Mapping[str, Any]:
     """A section: a mapping with string keys; ``null`` (an empty YAML section) is empty."""
     if value is None:
         return {}
     if not isinstance(value, Mapping):
-        raise ConfigError(f"{path}: expected a mapping, got {_show(value)}")
+        raise ConfigError(f"{path}: expected a mapping, got {show(value)}")
     for key in value:
         if not isinstance(key, str):
             raise ConfigError(f"{path}.{key}: keys must be strings")
@@ -437,7 +301,9 @@ def _environment_parameters(raw: object, unsupported: list[str]) -> dict[str, fl
         if isinstance(value, Mapping) and ({"sampler_type", "curriculum"} & set(value)):
             unsupported.append(path)
         else:
-            parameters[key] = _number(path, value, "a number (samplers and curricula unsupported)")
+            parameters[key] = parse_number(
+                path, value, "a number (samplers and curricula unsupported)"
+            )
     return parameters
 
 

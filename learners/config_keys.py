@@ -1,0 +1,165 @@
+"""The keys of ML-Agents' trainer config that ``learners.config`` checks: each key's value
+check (a one-line :class:`ConfigError` at the dotted key), and the keys ML-Agents has and
+we do not implement, with the value that asks for what we do anyway."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from typing import Any
+
+SCHEDULES = ("linear", "constant")
+
+
+class ConfigError(ValueError):
+    """A trainer config we cannot run; the message is one line starting with the key path."""
+
+
+def show(value: object) -> str:
+    """``repr`` cut short, so a misplaced section still makes a one-line message."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+# ---- value checks: each returns the parsed value or raises ConfigError at `path` ----------
+
+_FLOAT_TEXT = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+Check = Callable[[str, object], Any]
+
+
+def parse_number(path: str, value: object, what: str) -> float:
+    """A finite number: ints, floats and the strings PyYAML leaves for ``3.0e-4``."""
+    text_ok = isinstance(value, str) and _FLOAT_TEXT.fullmatch(value.strip()) is not None
+    if isinstance(value, bool) or not (isinstance(value, int | float) or text_ok):
+        raise ConfigError(f"{path}: expected {what}, got {show(value)}")
+    number = float(value)  # type: ignore[arg-type]
+    if not math.isfinite(number):
+        raise ConfigError(f"{path}: expected {what}, got {show(value)}")
+    return number
+
+
+def _float(low: float | None = None, high: float | None = None, *, open_low: bool = False) -> Check:
+    """A float check with an optional range (``open_low``: low itself excluded)."""
+    if low is None:
+        what = "a number"
+    elif low == 0 and high is None:
+        what = "a positive number" if open_low else "a number >= 0"
+    else:
+        what = f"a number in {'(' if open_low else '['}{low:g}, {high:g}]"
+
+    def check(path: str, value: object) -> float:
+        number = parse_number(path, value, what)
+        if low is not None and (number < low or (open_low and number == low)):
+            raise ConfigError(f"{path}: expected {what}, got {show(value)}")
+        if high is not None and number > high:
+            raise ConfigError(f"{path}: expected {what}, got {show(value)}")
+        return number
+
+    return check
+
+
+def _int(low: int = 1) -> Check:
+    """An integer >= ``low``; ``5.0e5`` is accepted as 500000, ``1.5`` is not."""
+    what = {1: "a positive integer", 0: "an integer >= 0"}.get(low, f"an integer >= {low}")
+
+    def check(path: str, value: object) -> int:
+        number = parse_number(path, value, what)
+        if number != int(number) or number < low:
+            raise ConfigError(f"{path}: expected {what}, got {show(value)}")
+        return int(number)
+
+    return check
+
+
+def _bool(path: str, value: object) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{path}: expected true or false, got {show(value)}")
+    return value
+
+
+def _choice(*allowed: str) -> Check:
+    def check(path: str, value: object) -> str:
+        if value not in allowed:
+            raise ConfigError(f"{path}: expected one of {', '.join(allowed)}, got {show(value)}")
+        return str(value)
+
+    return check
+
+
+POSITIVE_INT, POSITIVE = _int(1), _float(0, open_low=True)
+
+# hyperparameters by trainer type; SHARED are valid for all three
+SHARED: dict[str, Check] = {
+    "batch_size": POSITIVE_INT,
+    "buffer_size": POSITIVE_INT,
+    "learning_rate": POSITIVE,
+    "learning_rate_schedule": _choice(*SCHEDULES),
+}
+_ON_POLICY: dict[str, Check] = {
+    "beta": _float(0),
+    "beta_schedule": _choice(*SCHEDULES),
+    "epsilon": POSITIVE,
+    "epsilon_schedule": _choice(*SCHEDULES),
+    "lambd": _float(0, 1),
+    "num_epoch": POSITIVE_INT,
+}
+HYPER: dict[str, dict[str, Check]] = {
+    "ppo": {**SHARED, **_ON_POLICY, "max_policy_lag": _int(0)},
+    "impala": {**SHARED, **_ON_POLICY, "vtrace_rho_clip": POSITIVE, "vtrace_c_clip": POSITIVE},
+    "sac": {
+        **SHARED,
+        "buffer_init_steps": _int(0),
+        "tau": _float(0, 1, open_low=True),
+        "steps_per_update": POSITIVE,
+        "init_entcoef": POSITIVE,
+    },
+}
+# ML-Agents keys we do not implement, each with the value that asks for what we do anyway
+# (not reported; ALWAYS: reported whatever the value)
+ALWAYS = object()
+HYPER_UNSUPPORTED: dict[str, dict[str, object]] = {
+    "ppo": {"shared_critic": False},
+    "impala": {"shared_critic": False},
+    "sac": {"save_replay_buffer": False, "reward_signal_steps_per_update": ALWAYS},
+}
+NETWORK: dict[str, Check] = {
+    "hidden_units": POSITIVE_INT,
+    "num_layers": POSITIVE_INT,
+    "normalize": _bool,
+    "goal_conditioning_type": _choice("hyper", "none"),
+}
+NETWORK_UNSUPPORTED: dict[str, object] = {
+    "vis_encode_type": "simple",
+    "memory": None,
+    "deterministic": False,
+}
+TOP: dict[str, Check] = {
+    "max_steps": POSITIVE_INT,
+    "time_horizon": POSITIVE_INT,
+    "summary_freq": POSITIVE_INT,
+    "checkpoint_interval": POSITIVE_INT,
+    "keep_checkpoints": POSITIVE_INT,
+}
+TOP_UNSUPPORTED: dict[str, object] = {
+    "init_path": None,
+    "threaded": ALWAYS,
+    "self_play": None,
+    "behavioral_cloning": None,
+    "even_checkpoints": False,
+}
+SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")
+EXTRINSIC: dict[str, Check] = {"gamma": _float(0, 1, open_low=True), "strength": _float(0)}
+REWARD_UNSUPPORTED = ("curiosity", "gail", "rnd")
+ENGINE: dict[str, Check] = {
+    "time_scale": POSITIVE,
+    "width": POSITIVE_INT,
+    "height": POSITIVE_INT,
+    "quality_level": _int(0),
+    "target_frame_rate": _int(-1),
+    "capture_frame_rate": _int(0),
+    "no_graphics": _bool,
+}
+ENGINE_UNSUPPORTED = ("no_graphics_monitor",)
+RUN_UNSUPPORTED = ("env_settings", "checkpoint_settings", "torch_settings", "debug")
+RUN_KEYS = ("behaviors", "default_settings", "engine_settings", "environment_parameters")
