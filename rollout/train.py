@@ -264,7 +264,12 @@ def _run(
                 checkpoints.save(ray.get(learner.state_dict.remote()), meta)
             if progress["done"] or (deadline is not None and time.perf_counter() >= deadline):
                 break
-        final = checkpoints.save(ray.get(learner.state_dict.remote()), meta)
+        state = ray.get(learner.state_dict.remote())  # after every submission sent
+        final = checkpoints.save(state, meta)
+        # what the final checkpoint holds: the loop's last progress may predate submissions
+        # still queued at the learner (its status calls do not wait for them)
+        progress["steps"] = {name: b["steps"] for name, b in state["behaviors"].items()}
+        progress["version"] = state["version"]
         latest = summaries.latest()
         startup = _startup(_first_steps(service), summaries.first_reward_at)
     result = TrainResult(
