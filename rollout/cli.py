@@ -21,6 +21,17 @@ if TYPE_CHECKING:
 Command = Callable[[argparse.Namespace], int]
 
 
+def _positive_seconds(text: str) -> float:
+    """argparse type: a bad value is argparse's one-line error, before Ray starts."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number of seconds, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"positive, got {value:g}")
+    return value
+
+
 def _cmd_doctor(args: argparse.Namespace) -> int:
     """Show which compatibility fixes this interpreter needs and the key package versions."""
     import platform
@@ -73,15 +84,11 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
-    try:
-        restarts = RestartPolicy(
-            max_lifetime_restarts=args.max_lifetime_restarts,
-            rate_limit_n=args.restarts_rate_limit_n,
-            rate_limit_period_s=args.restarts_rate_limit_period_s,
-        )
-    except ValueError as error:
-        console.print(f"[red]error:[/red] --restarts-{error}", soft_wrap=True)
-        return 2
+    restarts = RestartPolicy(
+        max_lifetime_restarts=args.max_lifetime_restarts,
+        rate_limit_n=args.restarts_rate_limit_n,
+        rate_limit_period_s=args.restarts_rate_limit_period_s,
+    )
     options = TrainOptions(
         env=args.env,
         workers=args.workers,
@@ -258,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument(
         "--restarts-rate-limit-period-s",
-        type=float,
+        type=_positive_seconds,
         default=defaults.rate_limit_period_s,
         help=f"the rate limit's period (default {defaults.rate_limit_period_s:g})",
     )

@@ -32,7 +32,7 @@ class RestartPolicy:
 
     def __post_init__(self) -> None:
         if self.rate_limit_period_s <= 0:
-            raise ValueError(f"rate-limit-period-s: positive, got {self.rate_limit_period_s:g}")
+            raise ValueError(f"rate_limit_period_s: positive, got {self.rate_limit_period_s:g}")
         if self.max_failed_starts < 0:
             raise ValueError(f"max_failed_starts: 0 or more, got {self.max_failed_starts}")
 
