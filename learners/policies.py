@@ -2,11 +2,12 @@
 
 One encoder per sensor (an MLP input for vectors, a small CNN for images and grids),
 concatenated into MLP trunks (policy and value apart) with ML-Agents' layers: Swish
-activations and its initializations (trunk weights ``kaiming_normal`` for a linear
-layer, the Gaussian mean head at gain 0.2, discrete heads at 0.1, the value head
-Xavier-uniform, log-std 0). Heads for continuous actions (a Gaussian whose raw sample is
-stored; Unity receives ``clamp(a, -3, 3) / 3``, as from mlagents-learn), for each discrete
-branch (a masked categorical: masked actions have probability zero), and for the value.
+activations and its initializations, drawn in numpy by ``learners.acting.initial_weights``
+(trunk weights ``kaiming_normal`` for a linear layer, the Gaussian mean head at gain 0.2,
+discrete heads at 0.1, the value head Xavier-uniform, log-std 0). Heads for continuous
+actions (a Gaussian whose raw sample is stored; Unity receives ``clamp(a, -3, 3) / 3``,
+as from mlagents-learn), for each discrete branch (a masked categorical: masked actions
+have probability zero), and for the value.
 Plain torch: no Ray, so the learner side is testable in-process. Rollout workers act
 with ``learners.acting`` (numpy, no torch) and come here only for images and goals
 (``TorchActor``).
@@ -36,6 +37,7 @@ from learners.acting import (
     NetworkSettings,
     encoder_width,
     goal_sensors,
+    initial_weights,
     to_unity,
     trunk_input_width,
 )
@@ -120,31 +122,23 @@ class SensorEncoder(nn.Module):
         return self.net(x)
 
 
-def linear(width: int, out: int, gain: float = 1.0, xavier: bool = False) -> nn.Linear:
-    """A linear layer initialized as ML-Agents' ``linear_layer``: zero bias, weights from
-    ``kaiming_normal`` for a linear layer (std 1/sqrt(fan in)) or ``xavier_uniform``,
-    times ``gain``."""
-    layer = nn.Linear(width, out)
-    with torch.no_grad():
-        if xavier:
-            nn.init.xavier_uniform_(layer.weight)
-        else:
-            nn.init.kaiming_normal_(layer.weight, nonlinearity="linear")
-        layer.weight.mul_(gain)
-        layer.bias.zero_()
-    return layer
-
-
 def _mlp(width: int, settings: NetworkSettings) -> nn.Sequential:
     layers: list[nn.Module] = []
     for _ in range(settings.num_layers):
-        layers += [linear(width, settings.hidden_units), nn.SiLU()]
+        layers += [nn.Linear(width, settings.hidden_units), nn.SiLU()]
         width = settings.hidden_units
     return nn.Sequential(*layers)
 
 
 class ActorCritic(nn.Module):
-    def __init__(self, spec: BehaviorSpec, settings: NetworkSettings | None = None) -> None:
+    def __init__(
+        self,
+        spec: BehaviorSpec,
+        settings: NetworkSettings | None = None,
+        initial: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        """``initial``: every weight but the CNNs' (``acting.initial_weights``, ML-Agents'
+        initialization); drawn here from torch's random stream when not given."""
         super().__init__()
         settings = settings or NetworkSettings()
         self.spec, self.settings = spec, settings
@@ -164,16 +158,23 @@ class ActorCritic(nn.Module):
         width = settings.hidden_units if settings.num_layers else encoded
         self.continuous = spec.action_spec.continuous_size
         self.branches = tuple(spec.action_spec.discrete_branches)
-        self.mean = linear(width, self.continuous, gain=0.2) if self.continuous else None
+        self.mean = nn.Linear(width, self.continuous) if self.continuous else None
         conditional = bool(self.continuous) and settings.conditional_sigma
         self.log_std = (
             nn.Parameter(torch.zeros(self.continuous))
             if self.continuous and not conditional
             else None
         )
-        self.log_std_head = linear(width, self.continuous, gain=0.2) if conditional else None
-        self.logits = linear(width, sum(self.branches), gain=0.1) if self.branches else None
-        self.value = linear(width, 1, xavier=True)
+        self.log_std_head = nn.Linear(width, self.continuous) if conditional else None
+        self.logits = nn.Linear(width, sum(self.branches)) if self.branches else None
+        self.value = nn.Linear(width, 1)
+        if initial is None:
+            rng = np.random.default_rng(int(torch.randint(2**31 - 1, ())))
+            initial = initial_weights(spec, settings, rng)
+        missing, unexpected = self.load_state_dict(
+            {k: torch.from_numpy(v) for k, v in initial.items()}, strict=False
+        )
+        assert not unexpected and all(".net." in k for k in missing), (missing, unexpected)
 
     def update_normalization(self, obs: dict[str, torch.Tensor]) -> None:
         """Fold observations the learner trains on into the running statistics."""
@@ -341,12 +342,7 @@ def seeded_network(
     drawn from torch seeded by ``seed``; the caller's random stream is left as it was."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        network = ActorCritic(spec, settings)
-    missing, unexpected = network.load_state_dict(
-        {k: torch.from_numpy(v) for k, v in initial.items()}, strict=False
-    )
-    assert not unexpected and all(".net." in k for k in missing), (missing, unexpected)
-    return network
+        return ActorCritic(spec, settings, initial)
 
 
 def numpy_state(network: nn.Module) -> dict[str, np.ndarray]:
