@@ -1,30 +1,79 @@
 # unity-rollout: Ray rollout workers + central learner, one headless Unity instance per CPU.
 #
 #   docker build -t unity-rollout:0.1.0 .
+#   mkdir -p results && sudo chown 1000 results   # the container writes as uid 1000
 #   docker run --rm --shm-size=2g -v "$PWD/results:/workspace/results" unity-rollout:0.1.0
 #       -> `unity-rollout train` on unitysim 3DBall in local 2-core mode (no build needed)
 #   docker run --rm --shm-size=2g -v /path/to/LinuxBuild:/builds:ro \
 #       -v "$PWD/results:/workspace/results" unity-rollout:0.1.0 train --env /builds/Game.x86_64
 #
+# Build arguments:
+#   RENDER=1   the render variant: Xvfb and mesa's software GL (~300 MB), for builds with
+#              camera or render-texture observations: `docker run ... IMAGE xvfb-run -a
+#              unity-rollout train ...`. Headless builds (-nographics) need neither.
+#   TORCH=cpu  (default) the build stops with a one-line error when torch's CPU wheel is not
+#              on PIP_EXTRA_INDEX_URL, instead of pip silently taking the CUDA build;
+#              TORCH=any accepts whichever build pip finds.
+#   BASE       the Python base image (scripts/image-check.sh passes a local stand-in when
+#              no image registry is reachable).
+#
 # The same image is the Ray node image of deploy/ (cluster launcher, KubeRay); see
 # deploy/README.md. Python packages come only from scripts/setup-venv.sh with
 # constraints.txt, exactly as `make run` / `make test` install them (tests/deploy checks it).
-FROM python:3.11-slim-bookworm
+# `make image-check` builds this file and runs the image as a user would.
+ARG BASE=python:3.11-slim-bookworm
 
-# Runtime libraries of a headless Linux Unity player (-batchmode -nographics): Unity links
-# libGL/libGLU and a few X11 client libraries even when it renders nothing, and loads
-# libasound at start-up. Xvfb (with xauth for xvfb-run) is only for builds with camera or
-# render-texture observations, which need a display: `xvfb-run -a unity-rollout train ...`.
-# tini reaps the Unity players as PID 1; wget serves KubeRay's probes; procps gives `ps`.
+# ---- build: the virtual environment. The C compiler (unitysim's 3DBall physics) and
+# what the runtime never imports stay in this stage.
+FROM ${BASE} AS build
+SHELL ["/bin/bash", "-o", "pipefail", "-c"]
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/* /var/cache/apt/*.bin
+
+# Everything the package needs at install and run time (config/: the shipped trainer configs).
+WORKDIR /opt/unity-rollout
+COPY pyproject.toml setup.py constraints.txt README.md ./
+COPY scripts/setup-venv.sh scripts/check-torch-index.py scripts/docker-entrypoint.sh scripts/
+COPY rollout/ rollout/
+COPY learners/ learners/
+COPY unitysim/ unitysim/
+COPY config/ config/
+
+# The README's installer, unchanged: pinned by constraints.txt, mlagents-envs with --no-deps.
+# PIP_EXTRA_INDEX_URL: torch's CPU wheels (2.13.0+cpu satisfies the torch==2.13.0 pin), so
+# the image does not pull several GB of CUDA libraries. EXTRAS= (empty): runtime packages
+# only, no test tools. The import fails the build if the C extension is missing (setup.py
+# would only warn). Then out go torch's C++ test programs, headers (for compiling
+# extensions) and Ray's Java workers: nothing here imports or runs them.
+ARG PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu
+ARG TORCH=cpu
+RUN if [ "$TORCH" = cpu ]; then python3.11 scripts/check-torch-index.py "$PIP_EXTRA_INDEX_URL"; fi \
+    && PYTHON=python3.11 VENV=/opt/venv EXTRAS='' PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
+    && /opt/venv/bin/python -c "import unitysim.envs._ball3d" \
+    && if [ "$TORCH" = cpu ]; then /opt/venv/bin/python scripts/check-torch-index.py --installed; fi \
+    && site=/opt/venv/lib/python3.11/site-packages \
+    && rm -rf "$site/torch/test" "$site/torch/include" "$site/ray/jars" \
+    && find "$site/torch/bin" -mindepth 1 -maxdepth 1 ! -name torch_shm_manager -exec rm -rf {} + \
+    && /opt/venv/bin/unity-rollout doctor
+
+# ---- the image
+FROM ${BASE}
+SHELL ["/bin/bash", "-o", "pipefail", "-c"]
+
+# Runtime libraries of a headless Linux Unity player (-batchmode -nographics): libasound
+# and a few X11 client libraries it loads at start-up. tini reaps the Unity players as
+# PID 1; wget serves KubeRay's probes; procps gives `ps`. RENDER=1 adds Xvfb (with xauth
+# for xvfb-run) and GL/GLU (mesa's software renderer) for builds that render.
 # Versions follow the pinned Debian release of the base image (no apt pins: the image
 # registry and Debian mirrors are not reachable where this file is tested).
+ARG RENDER=
 # hadolint ignore=DL3008
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
         ca-certificates \
         libasound2 \
-        libgl1 \
-        libglu1-mesa \
         libxcursor1 \
         libxext6 \
         libxi6 \
@@ -34,44 +83,21 @@ RUN apt-get update \
         procps \
         tini \
         wget \
-        xauth \
-        xvfb \
-    && rm -rf /var/lib/apt/lists/*
+        ${RENDER:+libgl1 libglu1-mesa xauth xvfb} \
+    && rm -rf /var/lib/apt/lists/* /var/cache/apt/*.bin
 
-SHELL ["/bin/bash", "-o", "pipefail", "-c"]
-
-# Non-root: uid/gid 1000 (the KubeRay manifests run as the same ids).
+# Non-root: uid/gid 1000 (the KubeRay manifests run as the same ids). Any other uid works
+# too (docker run --user, OpenShift): the entrypoint and login shells give it HOME=/tmp.
 RUN groupadd --gid 1000 rollout \
     && useradd --uid 1000 --gid 1000 --create-home --shell /bin/bash rollout
 
-# Everything the package needs at install and run time (config/: the shipped trainer configs).
-WORKDIR /opt/unity-rollout
-COPY pyproject.toml setup.py constraints.txt README.md ./
-COPY scripts/setup-venv.sh scripts/setup-venv.sh
-COPY rollout/ rollout/
-COPY learners/ learners/
-COPY unitysim/ unitysim/
-COPY config/ config/
+COPY --from=build /opt/venv /opt/venv
+COPY --from=build /opt/unity-rollout /opt/unity-rollout
 
-# The README's installer, unchanged: pinned by constraints.txt, mlagents-envs with --no-deps.
-# PIP_EXTRA_INDEX_URL: torch's CPU wheels (2.13.0+cpu satisfies the torch==2.13.0 pin), so
-# the image does not pull several GB of CUDA libraries. EXTRAS= (empty): runtime packages
-# only, no test tools.
-ARG PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu
-# gcc and libc6-dev build unitysim's C 3DBall physics (setup.py) and leave in the same
-# layer; the import after the purge fails the build if the extension is missing (setup.py
-# would only warn). The profile.d line is literal on purpose: login shells (KubeRay's
-# bash -lc) expand it.
-# hadolint ignore=SC2016,DL3008
-RUN apt-get update \
-    && apt-get install -y --no-install-recommends gcc libc6-dev \
-    && PYTHON=python3.11 VENV=/opt/venv EXTRAS= PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
-    && apt-get purge -y --auto-remove gcc libc6-dev \
-    && rm -rf /var/lib/apt/lists/* \
-    && /opt/venv/bin/python -c "import unitysim.envs._ball3d" \
-    && /opt/venv/bin/unity-rollout doctor \
-    && printf 'export VIRTUAL_ENV=/opt/venv\nexport PATH=/opt/venv/bin:$PATH\n' \
-        > /etc/profile.d/unity-rollout.sh
+# The profile.d lines are literal on purpose: login shells (KubeRay's bash -lc) expand them.
+# hadolint ignore=SC2016
+RUN printf '%s\n' 'export VIRTUAL_ENV=/opt/venv' 'export PATH=/opt/venv/bin:$PATH' \
+        '[ -w "${HOME:-/}" ] || export HOME=/tmp' > /etc/profile.d/unity-rollout.sh
 
 ENV VIRTUAL_ENV=/opt/venv \
     PATH=/opt/venv/bin:$PATH \
@@ -81,7 +107,8 @@ ENV VIRTUAL_ENV=/opt/venv \
 # /builds: mount a Linux Unity build here (read-only is fine), e.g. /builds/Game.x86_64.
 # /workspace/results: every run's TensorBoard events, checkpoints and summary.json.
 RUN mkdir -p /builds /workspace/results \
-    && chown rollout:rollout /workspace /workspace/results
+    && chown rollout:rollout /workspace /workspace/results \
+    && chmod 1777 /workspace/results
 VOLUME ["/workspace/results"]
 WORKDIR /workspace
 USER 1000:1000
@@ -91,5 +118,5 @@ USER 1000:1000
 HEALTHCHECK --interval=60s --timeout=20s --start-period=20s --retries=3 \
     CMD ["unity-rollout", "doctor"]
 
-ENTRYPOINT ["tini", "--", "unity-rollout"]
+ENTRYPOINT ["tini", "--", "/opt/unity-rollout/scripts/docker-entrypoint.sh"]
 CMD ["train"]

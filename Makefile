@@ -3,7 +3,7 @@
 VENV ?= .venv
 ARGS ?=
 
-.PHONY: run test venv lint
+.PHONY: run test venv lint image-check
 
 venv:
 	@scripts/setup-venv.sh
@@ -17,3 +17,8 @@ lint: venv
 
 test: lint
 	$(VENV)/bin/python -m pytest
+
+# Build the Dockerfile and run the image as a user would (root or a reachable Docker daemon;
+# ~10 min the first time, see scripts/image-check.sh).
+image-check:
+	scripts/image-check.sh

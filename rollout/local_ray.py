@@ -10,20 +10,50 @@ it), so a thread that returned would take the node down with it.
 
 from __future__ import annotations
 
+import os
 import threading
 
+import psutil
 import ray
+
+# Ray's own figures: the smallest object store it accepts, and its default share of memory.
+RAY_MIN_OBJECT_STORE = 75 * 1024**2
+RAY_OBJECT_STORE_SHARE = 0.3
+
+
+def object_store_bytes(shm_free: int, memory: int) -> int | None:
+    """An object store that fits /dev/shm, or None for Ray's default.
+
+    Ray's default (30 % of memory) does not fit a container's /dev/shm (``docker run
+    --shm-size=2g`` on a 24 GiB host); Ray then moves the store to /tmp, slower, with a
+    warning. Our segments are a few MB, so a store of what /dev/shm holds is plenty. Below
+    Ray's minimum (Docker's default 64 MB) nothing fits: Ray's fallback and its hint stand."""
+    default = int(memory * RAY_OBJECT_STORE_SHARE)
+    fits = int(shm_free * 0.9)
+    if fits >= default or fits < RAY_MIN_OBJECT_STORE:
+        return None
+    return fits
+
+
+def _shm_free() -> int:
+    try:
+        stats = os.statvfs("/dev/shm")
+    except OSError:  # no /dev/shm (not Linux): Ray does not use it either
+        return 0
+    return stats.f_bsize * stats.f_bavail
 
 
 def init_local_ray(cpus: int) -> None:
     """No dashboard, and workers (with the Unity players they start) at the priority of
     the command that launched them; Ray's default, niceness 15, would hand their CPU to
     every other process on a shared machine. On a cluster the operator sets it at
-    ``ray start`` (``RAY_worker_niceness``; deploy/README.md)."""
+    ``ray start`` (``RAY_worker_niceness``; deploy/README.md). The object store fits
+    /dev/shm (``object_store_bytes``)."""
     ray.init(
         num_cpus=cpus,
         include_dashboard=False,
         log_to_driver=False,
+        object_store_memory=object_store_bytes(_shm_free(), psutil.virtual_memory().total),
         _system_config={"worker_niceness": 0},
     )
 

@@ -201,7 +201,9 @@ def train(options: TrainOptions, starting: BackgroundRay | None = None) -> Train
         probe.unlink()
     except OSError as error:
         raise TrainingError(
-            f"--results-dir: cannot write {run_dir} ({error.strerror}); choose a writable one"
+            f"--results-dir: cannot write {run_dir} as uid {os.getuid()} ({error.strerror}); "
+            "choose a writable one, or make it writable for this uid (in Docker: mkdir it and "
+            "chown it to the uid the container runs as before mounting it)"
         ) from None
     for problem in config.unsupported:
         log.warning("%s: not supported by unity-rollout, ignored", problem)

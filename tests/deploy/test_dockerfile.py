@@ -75,7 +75,8 @@ def test_installs_through_the_readme_script_and_constraints():
 
 
 def test_python_version_matches_the_script_and_project():
-    base = args_of("FROM")[0].split()[0]
+    base = args_of("ARG")[0].removeprefix("BASE=")
+    assert all(f.split()[0] == "${BASE}" for f in args_of("FROM")), args_of("FROM")
     match = re.fullmatch(r"python:(\d+\.\d+)-slim(-\w+)?", base)
     assert match, base
     script = (ROOT / "scripts/setup-venv.sh").read_text()
@@ -88,7 +89,7 @@ def test_python_version_matches_the_script_and_project():
 def test_package_sources_are_copied_and_not_ignored():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     packages = project["tool"]["setuptools"]["packages"]["find"]["include"]
-    copied = [shlex.split(a)[:-1] for a in args_of("COPY")]
+    copied = [shlex.split(a)[:-1] for a in args_of("COPY") if not a.startswith("--from=")]
     sources = [source.rstrip("/") for sources in copied for source in sources]
     for pattern in packages:
         assert pattern.rstrip("*") in sources, f"package {pattern} is not copied"
@@ -106,9 +107,12 @@ def test_package_sources_are_copied_and_not_ignored():
 
 def test_entrypoint_is_the_cli_and_default_command_trains_on_unitysim():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["scripts"] == {"unity-rollout": "rollout.cli:main"}
     entrypoint = exec_form(args_of("ENTRYPOINT")[-1])
-    assert entrypoint[-1] in project["scripts"] == {"unity-rollout": "rollout.cli:main"}
     assert entrypoint[:2] == ["tini", "--"]  # PID 1 reaps the Unity players
+    script = entrypoint[2].removeprefix("/opt/unity-rollout/")
+    assert script in " ".join(args_of("COPY")) and (ROOT / script).exists()
+    assert (ROOT / script).read_text().rstrip().endswith('exec unity-rollout "$@"')
     command = exec_form(args_of("CMD")[-1])
     assert command == ["train"]
     args = build_parser().parse_args(command)
@@ -130,6 +134,17 @@ def test_non_root_user_volumes_and_build_path():
     runs = " ".join(args_of("RUN"))
     assert "/builds" in runs and f"{workdir}/{results_default}" in runs
     assert "/builds" in (ROOT / "deploy/README.md").read_text()
+
+
+def test_the_runtime_stage_has_no_compiler_and_render_libraries_only_on_request():
+    assert len(args_of("FROM")) == 2, args_of("FROM")  # build, then the image
+    runs = args_of("RUN")
+    final_apt = next(r for r in runs if "libasound2" in r)
+    assert "gcc" not in final_apt
+    for package in ("xvfb", "libgl1", "libglu1-mesa", "xauth"):
+        assert re.search(rf"\$\{{RENDER:\+[^}}]*\b{package}\b", final_apt), package
+    copies = args_of("COPY")
+    assert "--from=build /opt/venv /opt/venv" in copies
 
 
 @pytest.mark.parametrize("package", ["libglu1-mesa", "libxcursor1", "xvfb", "tini"])
