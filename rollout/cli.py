@@ -97,6 +97,7 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
         results_dir=args.results_dir,
         seed=args.seed,
         resume=args.resume,
+        resume_if_exists=args.resume_if_exists,
         force=args.force,
         max_steps=args.max_steps,
         max_seconds=args.max_seconds,
@@ -236,6 +237,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--results-dir", default="results")
     train.add_argument("--seed", type=int, default=0)
     train.add_argument("--resume", action="store_true", help="continue from the last checkpoint")
+    train.add_argument(
+        "--resume-if-exists",
+        action="store_true",
+        help="continue from the last checkpoint when the run has one, else start it: for "
+        "entrypoints that may run again (a RayJob's retries, a resubmitted job)",
+    )
     train.add_argument("--force", action="store_true", help="overwrite an existing run")
     train.add_argument("--max-steps", type=int, help="override every behavior's max_steps")
     train.add_argument("--max-seconds", type=float, help="stop (with a checkpoint) after this")

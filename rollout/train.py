@@ -53,6 +53,7 @@ class TrainOptions:
     results_dir: str = "results"
     seed: int = 0
     resume: bool = False
+    resume_if_exists: bool = False  # resume when the run has a checkpoint, else start fresh
     force: bool = False
     max_steps: int | None = None  # overrides every behavior's max_steps
     max_seconds: float | None = None
@@ -87,7 +88,7 @@ def prepare_run_dir(options: TrainOptions) -> tuple[Path, dict[str, Any] | None]
     """The run directory, and the checkpoint to resume from (None for a fresh run)."""
     run_dir = Path(options.results_dir) / options.run_id
     has_checkpoints = any((run_dir / "checkpoints").glob("*.pt"))
-    if options.resume:
+    if options.resume or (options.resume_if_exists and has_checkpoints):
         if not has_checkpoints:
             raise TrainingError(f"--resume: no checkpoint in {run_dir}/checkpoints to resume from")
         from learners import checkpoint  # torch: only a resumed or saving driver loads it

@@ -128,3 +128,16 @@ def train_in_process(
     finally:
         collector.close()
     return best, history
+
+
+def run_marked(marker: str) -> list[psutil.Process]:
+    """Every process of a run started with ``UNITY_ROLLOUT_TEST_RUN=marker`` in its
+    environment (Ray's node processes, workers and Unity players inherit it)."""
+    found = []
+    for process in psutil.process_iter():
+        try:
+            if process.environ().get("UNITY_ROLLOUT_TEST_RUN") == marker:
+                found.append(process)
+        except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
+            continue
+    return found

@@ -25,6 +25,7 @@ import torch
 from learners import checkpoint
 from learners.export import export_checkpoint
 from rollout.train import TrainingError, TrainOptions, train
+from tests.helpers import run_marked
 
 pytestmark = pytest.mark.integration
 
@@ -103,16 +104,6 @@ def _connections(process: psutil.Process) -> list:
     except (psutil.NoSuchProcess, psutil.AccessDenied):
         return []
 
-
-def run_marked(marker: str) -> list[psutil.Process]:
-    found = []
-    for process in psutil.process_iter():
-        try:
-            if process.environ().get("UNITY_ROLLOUT_TEST_RUN") == marker:
-                found.append(process)
-        except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
-            continue
-    return found
 
 
 @pytest.mark.parametrize("how", ["SIGTERM to the driver", "SIGINT to the process group"])

@@ -1,0 +1,112 @@
+"""Recovery of a run whose driver dies: ``unity-rollout train`` SIGKILLed mid-run leaves no
+process behind, and ``--resume`` (or a job entrypoint's ``--resume-if-exists``) continues
+from its last checkpoint with the step count, the weights version and the optimizer state
+intact. What came after that checkpoint is lost, at most one checkpoint_interval."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+import yaml
+
+from learners import checkpoint
+from learners.config import CONFIG_DIR
+from rollout.train import TrainOptions, prepare_run_dir
+from tests.helpers import run_marked
+
+BEHAVIOR = "3DBall?team=0"
+
+
+def adam_steps(state: dict) -> int:
+    """How many optimizer steps the behavior's Adam has taken (its state's ``step``)."""
+    optimizer = state["behaviors"][BEHAVIOR]["algorithm"]["optimizer"]
+    return int(max(float(p["step"]) for p in optimizer["state"].values()))
+
+
+def start_train(results: Path, marker: str, *extra: str) -> subprocess.Popen:
+    command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress"]
+    command += ["--results-dir", str(results), "--config", str(results / "3DBall.yaml"), *extra]
+    return subprocess.Popen(
+        command,
+        env={**os.environ, "UNITY_ROLLOUT_TEST_RUN": marker},
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def wait_gone(marker: str, seconds: float) -> list:
+    deadline = time.monotonic() + seconds
+    while (left := run_marked(marker)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    return left
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("flag", ["--resume", "--resume-if-exists"])
+def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path, flag):
+    config = yaml.safe_load((CONFIG_DIR / "3DBall.yaml").read_text())
+    config["behaviors"]["3DBall"]["checkpoint_interval"] = 4000
+    (tmp_path / "3DBall.yaml").write_text(yaml.safe_dump(config))
+    checkpoints = tmp_path / "run" / "checkpoints"
+    marker = uuid.uuid4().hex
+    driver = start_train(tmp_path, marker, "--max-steps", "1000000")
+    try:
+        deadline = time.monotonic() + 240  # a safety stop: the budget is checkpoints
+        while len(list(checkpoints.glob("step-*.pt"))) < 3:
+            assert driver.poll() is None, driver.communicate()[0][-2000:]
+            assert time.monotonic() < deadline, "no third checkpoint"
+            time.sleep(0.2)
+        driver.kill()  # SIGKILL: no handler, no final checkpoint
+        driver.wait(timeout=30)
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+            driver.wait()
+    left = wait_gone(marker, 60)
+    for process in left:
+        process.kill()
+    assert not left, f"processes outlived the killed driver: {[p.cmdline()[:3] for p in left]}"
+    assert not (tmp_path / "run" / "summary.json").exists()  # it really died mid-run
+
+    last = checkpoint.load(tmp_path / "run")
+    step, version, adam = int(last["step"]), int(last["version"]), adam_steps(last)
+    assert step > 0 and version > 0 and adam > 0
+
+    marker = uuid.uuid4().hex
+    resumed = start_train(tmp_path, marker, flag, "--max-steps", str(step + 6000))
+    try:
+        output, _ = resumed.communicate(timeout=300)
+    finally:
+        if resumed.poll() is None:
+            os.killpg(resumed.pid, signal.SIGKILL)
+            resumed.wait()
+    assert resumed.returncode == 0, output[-2000:]
+    assert not wait_gone(marker, 60)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    final = checkpoint.load(summary["checkpoint"])
+    assert final["step"] == summary["steps"] >= step + 6000
+    assert final["version"] > version  # the versions go on from the checkpoint's
+    # Adam goes on from its saved moments and step count: a fresh optimizer would have
+    # taken only the resumed run's steps, fewer than the checkpoint already had
+    assert adam_steps(final) > adam
+    steps_printed = [
+        int(line.split("Step: ")[1].split(".")[0])
+        for line in output.splitlines()
+        if "Step: " in line
+    ]
+    assert steps_printed and min(steps_printed) > step, steps_printed[:3]
+
+
+def test_resume_if_exists_starts_a_run_that_has_no_checkpoint(tmp_path):
+    options = TrainOptions(results_dir=str(tmp_path), run_id="new", resume_if_exists=True)
+    assert prepare_run_dir(options) == (tmp_path / "new", None)
