@@ -107,6 +107,7 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
         num_areas=args.num_areas,
         restarts=restarts,
         timeout_wait=args.timeout_wait,
+        max_learner_restarts=args.max_learner_restarts,
     )
     try:
         result = train(options, starting)
@@ -254,6 +255,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=60,
         help="seconds to wait for Unity to connect, or to answer a step (as mlagents-learn)",
+    )
+    train.add_argument(
+        "--max-learner-restarts",
+        type=int,
+        default=3,
+        help="times the learner may die (OOM, GPU error, killed) and come back from the "
+        "run's last checkpoint before the run stops",
     )
     defaults = RestartPolicy()
     train.add_argument(

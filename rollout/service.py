@@ -25,7 +25,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import ray
 from ray.exceptions import ActorUnavailableError, RayActorError, RayTaskError
@@ -33,6 +33,7 @@ from ray.exceptions import ActorUnavailableError, RayActorError, RayTaskError
 from rollout import keys
 from rollout.collector import ActorFactory, CollectorMetrics
 from rollout.ports import PortRange
+from rollout.service_metrics import ServiceMetrics
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker, WeightsLost
 
@@ -45,6 +46,12 @@ REPORT_WAIT_S = 2.0  # at the end of ``run``: for metrics of workers between col
 
 class RolloutError(RuntimeError):
     """Collection cannot go on (a worker keeps failing); the message names the cause."""
+
+
+class LearnerDied(RuntimeError):
+    """The learner actor is gone (OOM, a GPU error, SIGKILL). The driver brings a new one
+    back from the last checkpoint and hands it to ``replace_learner``; the workers keep
+    their Unity instances and weights meanwhile."""
 
 
 def _last_line(error: Exception) -> str:
@@ -72,46 +79,6 @@ class ServiceConfig:
     registry_dir: str | None = None
 
 
-@dataclass
-class ServiceMetrics:
-    env_steps: int = 0
-    agent_steps: int = 0
-    segments: int = 0
-    worker_restarts: int = 0
-    unity_restarts: int = 0
-    dropped_steps: int = 0
-    policy_lag_max: int = 0
-    policy_lag_sum: int = 0
-    policy_lag_count: int = 0
-    seconds: float = 0.0
-    workers: list[CollectorMetrics] = field(default_factory=list)
-
-    @property
-    def policy_lag_mean(self) -> float:
-        return self.policy_lag_sum / max(self.policy_lag_count, 1)
-
-    def episode_totals(self) -> dict[str, tuple[int, float, int]]:
-        """Per behavior, over live workers: (episodes, return sum, length sum) so far."""
-        totals: dict[str, tuple[int, float, int]] = {}
-        for worker in self.workers:
-            for name, stats in worker.behaviors.items():
-                episodes, returns, lengths = totals.get(name, (0, 0.0, 0))
-                totals[name] = (
-                    episodes + stats.episodes,
-                    returns + stats.return_sum,
-                    lengths + stats.length_sum,
-                )
-        return totals
-
-    def mean_returns(self) -> dict[str, float]:
-        """Mean episode return per behavior, over every worker's finished episodes."""
-        return {
-            name: returns / episodes
-            for name, (episodes, returns, _) in self.episode_totals().items()
-            if episodes
-        }
-
-
 class RolloutService:
     def __init__(
         self,
@@ -137,6 +104,8 @@ class RolloutService:
         self._retry_at: dict[int, float] = {}  # worker index -> when to ask it again
         self._metrics_calls: dict[int, ray.ObjectRef] = {}  # worker index -> metrics call
         self._reported: dict[int, CollectorMetrics] = {}  # worker index -> its last metrics
+        self._stale: set[ray.ObjectRef] = set()  # collects acted by a dead learner's weights
+        self._dead_learners: set[str] = set()  # actor ids of learners replaced
         self._started = 0.0
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -262,6 +231,10 @@ class RolloutService:
         index, _ = self._collects.pop(ref)
         try:
             segments = ray.get(ref)
+            if ref in self._stale:  # weights the restored learner never had: drop
+                self._stale.discard(ref)
+                self.metrics.learner_dropped_steps += sum(len(s) for s in segments)
+                segments = []
         except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
             cause = getattr(error, "cause", None) or error
             if isinstance(cause, WeightsLost):  # restarted while idle: resend the weights
@@ -282,6 +255,13 @@ class RolloutService:
             self._retry_at[index] = now + RETRY_PAUSE_S
             return 0
         except RayActorError as error:
+            self._stale.discard(ref)
+            died = getattr(error, "actor_id", None)
+            if died == self.learner._actor_id.hex() or died in self._dead_learners:
+                self._idle.add(index)  # the weights it was sent died with a learner
+                if died in self._dead_learners:
+                    return 0  # one that was replaced already
+                raise LearnerDied(_last_line(error)) from None
             self._count_failure(index, error)
             self._idle.add(index)
             return 0
@@ -315,12 +295,38 @@ class RolloutService:
             num_returns=1 if block else len(self._submits),
             timeout=timeout if block else 0,
         )
-        for ref, (version, wanted) in zip(done, ray.get(done), strict=True):
+        try:
+            answers = ray.get(done)
+        except RayActorError as error:
+            raise LearnerDied(_last_line(error)) from None
+        for ref, (version, wanted) in zip(done, answers, strict=True):
             del self._submit_steps[ref]
             self._wanted = wanted
             if version > self._version:
                 self._version = version
                 self._weights_ref = self.learner.weights.remote()
+
+    def replace_learner(self, learner: ray.actor.ActorHandle) -> None:
+        """Route to a learner restored after the last one died. What was in flight to the
+        dead one is lost, and collects now running act with weights the restored learner
+        never had: their steps are dropped (``learner_dropped_steps``). The restored
+        learner's version is above any the dead one published (the driver sets it), so
+        every worker takes its weights with its next collect."""
+        self.metrics.learner_restarts += 1
+        self._dead_learners.add(self.learner._actor_id.hex())
+        self.metrics.learner_dropped_steps += sum(self._submit_steps.values())
+        self._submits.clear()
+        self._submit_steps.clear()
+        self._stale = set(self._collects)
+        self.learner = learner
+        self._weights_ref = learner.weights.remote()
+        self._version = int(ray.get(self._weights_ref)[0])
+        self._wanted = ray.get(learner.submit.remote([]))[1]
+
+    @property
+    def version(self) -> int:
+        """The newest weights version the service has seen published."""
+        return self._version
 
     def _observe(self, segments: list) -> None:
         for segment in segments:

@@ -27,7 +27,7 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
-from rollout.service import ServiceMetrics
+from rollout.service_metrics import ServiceMetrics
 
 _RATE_TAGS = {
     "collect": "Perf/Agent Steps per Second",
@@ -92,6 +92,7 @@ class Summaries:
         self.rates: dict[str, float] = {}
         self.first_reward_at: float | None = None  # wall clock of the first mean reward
         self._last_rate = (self.started, 0, 0, 0.0)
+        self._faults = ServiceMetrics().faults()  # printed when they change (no live table)
 
     def __enter__(self) -> Summaries:
         if self.live is not None:
@@ -137,6 +138,9 @@ class Summaries:
                 window.next_step = next_multiple(step, self.summary_freq(behavior))
         if self.live is not None:
             self.live.update(self._table(metrics, progress), refresh=True)
+        elif (faults := metrics.faults()) != self._faults:  # a line per change, as it happens
+            self.console.print(f"faults: {_faults_text(faults)}", soft_wrap=True, highlight=False)
+            self._faults = faults
 
     def _window(self, behavior: str, step: int) -> _Window:
         if behavior not in self.windows:
@@ -181,7 +185,8 @@ class Summaries:
         window.losses = {}
         writer.add_scalar("Health/Unity Restarts", metrics.unity_restarts, step)
         writer.add_scalar("Health/Worker Restarts", metrics.worker_restarts, step)
-        writer.add_scalar("Health/Dropped Steps", metrics.dropped_steps, step)
+        writer.add_scalar("Health/Learner Restarts", metrics.learner_restarts, step)
+        writer.add_scalar("Health/Dropped Steps", metrics.faults()["dropped_steps"], step)
         writer.add_scalar("Health/Policy Lag", metrics.policy_lag_mean, step)
         for name, rate in self.rates.items():
             writer.add_scalar(_RATE_TAGS[name], rate, step)
@@ -194,7 +199,7 @@ class Summaries:
                 f"unity-rollout  {elapsed:6.0f}s  "
                 f"{self.rates.get('collect', 0):,.0f} steps/s  "
                 f"learner {self.rates.get('learn', 0):,.0f} samples/s  "
-                f"lag {metrics.policy_lag_mean:.2f}  restarts {metrics.unity_restarts}"
+                f"lag {metrics.policy_lag_mean:.2f}\nfaults: {_faults_text(metrics.faults())}"
             ),
             title_justify="left",
         )
@@ -217,6 +222,14 @@ class Summaries:
             name: {"mean_reward": w.last_reward, "episode_length": w.last_length}
             for name, w in self.windows.items()
         }
+
+
+def _faults_text(faults: dict[str, int]) -> str:
+    return (
+        f"unity restarts {faults['unity_restarts']}, worker restarts "
+        f"{faults['worker_restarts']}, learner restarts {faults['learner_restarts']}, "
+        f"steps dropped {faults['dropped_steps']:,}"
+    )
 
 
 def _safe(behavior: str) -> str:

@@ -27,13 +27,15 @@ from typing import Any
 import psutil
 import ray
 import yaml
+from ray.exceptions import RayActorError
 
 from learners.acting import policy_factory
 from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
 from learners.remote import learner_actor
+from rollout.learner_keeper import LearnerKeeper
 from rollout.local_ray import BackgroundRay, init_local_ray
 from rollout.restarts import RestartPolicy
-from rollout.service import RolloutError, RolloutService, ServiceConfig
+from rollout.service import LearnerDied, RolloutError, RolloutService, ServiceConfig
 from rollout.summaries import Summaries, next_multiple
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
 
@@ -63,6 +65,7 @@ class TrainOptions:
     num_areas: int = 1
     restarts: RestartPolicy = field(default_factory=RestartPolicy)  # of each Unity instance
     timeout_wait: int = 60  # seconds for Unity to connect or answer (mlagents-learn's)
+    max_learner_restarts: int = 3  # learner deaths a run survives (from its last checkpoint)
 
 
 @dataclass(frozen=True)
@@ -244,6 +247,12 @@ def _run(
         int(resume["step"]) if resume else 0,
     )
     service, learner = build_system(options, config, unity, resume)
+    keeper = LearnerKeeper(
+        learner,
+        lambda: learner_actor(config, options.max_steps, seed=options.seed),
+        run_dir,
+        options.max_learner_restarts,
+    )
     started = time.perf_counter()
     deadline = started + options.max_seconds if options.max_seconds else None
     meta = {"env": options.env, "run_id": options.run_id}
@@ -258,16 +267,20 @@ def _run(
         while not received:
             try:
                 metrics = service.run(seconds=0.5, report_every=0.5)
+                learner = keeper.learner
+                progress = ray.get(learner.progress.remote())
+                summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
+                if checkpoints.due(sum(progress["steps"].values())):
+                    checkpoints.save(ray.get(learner.state_dict.remote()), meta)
             except RolloutError:  # keep what was learned, then report the cause
-                checkpoints.save(ray.get(learner.state_dict.remote()), meta)
+                checkpoints.save(ray.get(keeper.learner.state_dict.remote()), meta)
                 raise
-            progress = ray.get(learner.progress.remote())
-            summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
-            if checkpoints.due(sum(progress["steps"].values())):
-                checkpoints.save(ray.get(learner.state_dict.remote()), meta)
+            except (LearnerDied, RayActorError) as error:  # only the learner's calls raise it
+                keeper.restore(service, _cause(error))
+                continue
             if progress["done"] or (deadline is not None and time.perf_counter() >= deadline):
                 break
-        state = ray.get(learner.state_dict.remote())  # after every submission sent
+        state = ray.get(keeper.learner.state_dict.remote())  # after every submission sent
         final = checkpoints.save(state, meta)
         # what the final checkpoint holds: the loop's last progress may predate submissions
         # still queued at the learner (its status calls do not wait for them)
@@ -296,12 +309,19 @@ def _run(
                 "seconds": round(result.seconds, 1),
                 "checkpoint": str(final),
                 "interrupted": received[0] if received else None,
+                "faults": service.metrics.faults(),
                 "startup": startup,
             },
             indent=2,
         )
     )
     return result
+
+
+def _cause(error: Exception) -> str:
+    """Ray's last line without its paragraph of generic advice."""
+    text = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+    return text.split(" Some common causes")[0]
 
 
 def _first_steps(service: RolloutService) -> list[float]:

@@ -1,7 +1,12 @@
-"""Recovery of a run whose driver dies: ``unity-rollout train`` SIGKILLed mid-run leaves no
-process behind, and ``--resume`` (or a job entrypoint's ``--resume-if-exists``) continues
-from its last checkpoint with the step count, the weights version and the optimizer state
-intact. What came after that checkpoint is lost, at most one checkpoint_interval."""
+"""Recovery of a run whose driver or learner dies.
+
+- ``unity-rollout train`` SIGKILLed mid-run leaves no process behind, and ``--resume`` (or
+  a job entrypoint's ``--resume-if-exists``) continues from its last checkpoint with the
+  step count, the weights version and the optimizer state intact.
+- A learner actor SIGKILLed mid-run comes back from the last checkpoint by itself; the run
+  says so, counts it in ``summary.json`` and goes on to its step budget.
+
+What came after that checkpoint is lost: at most one checkpoint_interval."""
 
 from __future__ import annotations
 
@@ -31,6 +36,21 @@ def adam_steps(state: dict) -> int:
     return int(max(float(p["step"]) for p in optimizer["state"].values()))
 
 
+def write_config(results: Path, **settings: int) -> None:
+    """The shipped 3DBall config with frequent checkpoints (and ``settings``)."""
+    config = yaml.safe_load((CONFIG_DIR / "3DBall.yaml").read_text())
+    config["behaviors"]["3DBall"].update({"checkpoint_interval": 4000, **settings})
+    (results / "3DBall.yaml").write_text(yaml.safe_dump(config))
+
+
+def wait_for_checkpoints(driver: subprocess.Popen, checkpoints: Path, count: int) -> None:
+    deadline = time.monotonic() + 240  # a safety stop: the budget is checkpoints
+    while len(list(checkpoints.glob("step-*.pt"))) < count:
+        assert driver.poll() is None, driver.communicate()[0][-2000:]
+        assert time.monotonic() < deadline, f"no checkpoint #{count}"
+        time.sleep(0.2)
+
+
 def start_train(results: Path, marker: str, *extra: str) -> subprocess.Popen:
     command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress"]
     command += ["--results-dir", str(results), "--config", str(results / "3DBall.yaml"), *extra]
@@ -54,18 +74,11 @@ def wait_gone(marker: str, seconds: float) -> list:
 @pytest.mark.integration
 @pytest.mark.parametrize("flag", ["--resume", "--resume-if-exists"])
 def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path, flag):
-    config = yaml.safe_load((CONFIG_DIR / "3DBall.yaml").read_text())
-    config["behaviors"]["3DBall"]["checkpoint_interval"] = 4000
-    (tmp_path / "3DBall.yaml").write_text(yaml.safe_dump(config))
-    checkpoints = tmp_path / "run" / "checkpoints"
+    write_config(tmp_path)
     marker = uuid.uuid4().hex
     driver = start_train(tmp_path, marker, "--max-steps", "1000000")
     try:
-        deadline = time.monotonic() + 240  # a safety stop: the budget is checkpoints
-        while len(list(checkpoints.glob("step-*.pt"))) < 3:
-            assert driver.poll() is None, driver.communicate()[0][-2000:]
-            assert time.monotonic() < deadline, "no third checkpoint"
-            time.sleep(0.2)
+        wait_for_checkpoints(driver, tmp_path / "run" / "checkpoints", 3)
         driver.kill()  # SIGKILL: no handler, no final checkpoint
         driver.wait(timeout=30)
     finally:
@@ -110,3 +123,34 @@ def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path, f
 def test_resume_if_exists_starts_a_run_that_has_no_checkpoint(tmp_path):
     options = TrainOptions(results_dir=str(tmp_path), run_id="new", resume_if_exists=True)
     assert prepare_run_dir(options) == (tmp_path / "new", None)
+
+
+@pytest.mark.integration
+def test_a_killed_learner_comes_back_from_the_checkpoint_and_the_run_goes_on(tmp_path):
+    write_config(tmp_path)
+    marker = uuid.uuid4().hex
+    driver = start_train(tmp_path, marker, "--max-steps", "40000")
+    try:
+        wait_for_checkpoints(driver, tmp_path / "run" / "checkpoints", 2)
+        learners = [p for p in run_marked(marker) if "RayLearner" in " ".join(p.cmdline())]
+        assert len(learners) == 1, [p.cmdline() for p in run_marked(marker)]
+        at_kill = checkpoint.load(tmp_path / "run")
+        learners[0].send_signal(signal.SIGKILL)
+        output, _ = driver.communicate(timeout=300)
+    finally:
+        if driver.poll() is None:
+            os.killpg(driver.pid, signal.SIGKILL)
+            driver.wait()
+    assert driver.returncode == 0, output[-3000:]
+    assert "Traceback" not in output, output[-3000:]
+    said = [line for line in output.splitlines() if "the learner died" in line]
+    assert len(said) == 1 and "restored from step-" in said[0], output[-3000:]
+    assert "faults: unity restarts 0, worker restarts 0, learner restarts 1" in output
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["faults"]["learner_restarts"] == 1
+    assert summary["steps"] >= 40000
+    assert summary["version"] > at_kill["version"]
+    left = wait_gone(marker, 60)
+    for process in left:
+        process.kill()
+    assert not left, f"processes outlived the run: {[p.cmdline()[:3] for p in left]}"

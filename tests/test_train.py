@@ -105,7 +105,6 @@ def _connections(process: psutil.Process) -> list:
         return []
 
 
-
 @pytest.mark.parametrize("how", ["SIGTERM to the driver", "SIGINT to the process group"])
 def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
     marker = uuid.uuid4().hex
@@ -183,7 +182,7 @@ def test_a_results_dir_that_cannot_be_written_is_a_one_line_error(tmp_path):
 def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
     from learners.config import parse_config
     from learners.learner import LearnerStats
-    from rollout.service import ServiceMetrics
+    from rollout.service_metrics import ServiceMetrics
     from rollout.summaries import Summaries
 
     config = parse_config({"behaviors": {"A": {"summary_freq": 100}, "B": {"summary_freq": 250}}})

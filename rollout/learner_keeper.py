@@ -1,0 +1,67 @@
+"""Keeping the learner alive: when its actor dies (out of memory, a GPU error, SIGKILL),
+the driver starts a new one from the run's newest checkpoint, at most ``max_restarts``
+times per run, and says so. The workers keep their Unity instances and weights meanwhile;
+what was in flight to the dead learner is dropped and counted (``RolloutService.
+replace_learner``). What the dead learner learned after that checkpoint is lost: at most
+one ``checkpoint_interval`` of steps."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import ray
+
+from rollout.service import RolloutError, RolloutService
+
+log = logging.getLogger(__name__)
+
+
+class LearnerKeeper:
+    """Holds the run's learner actor and restores it when it dies."""
+
+    def __init__(
+        self, learner: Any, start: Callable[[], Any], run_dir: Path, max_restarts: int
+    ) -> None:
+        self.learner = learner
+        self._start = start  # a new learner actor, as the run first made it
+        self._run_dir = run_dir
+        self.max_restarts = max_restarts
+        self.restarts = 0
+
+    def restore(self, service: RolloutService, cause: str) -> Any:
+        """A new learner from the newest checkpoint (or from the start, before the first
+        one), its version numbered past every version the dead one published, so that each
+        worker takes the restored weights with its next collect."""
+        self.restarts += 1
+        if self.restarts > self.max_restarts:
+            raise RolloutError(
+                f"the learner died {self.restarts} times (--max-learner-restarts "
+                f"{self.max_restarts}); last: {cause}"
+            )
+        with contextlib.suppress(Exception):
+            ray.kill(self.learner, no_restart=True)
+        from learners import checkpoint  # torch: only a driver that restores loads it
+
+        learner = self._start()
+        try:
+            source: Path | None = checkpoint.latest(self._run_dir)
+            state = checkpoint.load(source)
+        except FileNotFoundError:  # died before the first checkpoint: start over
+            source, state = None, ray.get(learner.state_dict.remote())
+        state = {**state, "version": max(int(state["version"]), service.version) + 1}
+        ray.get(learner.load_state_dict.remote(state))
+        service.replace_learner(learner)
+        self.learner = learner
+        log.warning(
+            "the learner died (%s); restored from %s at step %d (restart %d of at most %d)",
+            cause,
+            source.name if source else "the start",
+            int(state["step"]),
+            self.restarts,
+            self.max_restarts,
+        )
+        return learner
