@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+import uuid
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -72,6 +73,7 @@ class CollectorMetrics:
     unity_stats: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
     seconds: float = 0.0
     first_step_at: float | None = None  # wall clock (time.time) of Unity's first answer
+    incarnation: str = ""  # this worker process's id: a restarted worker starts anew
 
 
 class Collector:
@@ -91,7 +93,7 @@ class Collector:
         self.actors: dict[str, Actor] = {}
         self.weights: Weights = {}
         self.version = 0
-        self.metrics = CollectorMetrics()
+        self.metrics = CollectorMetrics(incarnation=uuid.uuid4().hex)
         self._started = False
         self._agents_seen = False  # any agent of any behavior, ever
 

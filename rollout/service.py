@@ -104,6 +104,7 @@ class RolloutService:
         self._retry_at: dict[int, float] = {}  # worker index -> when to ask it again
         self._metrics_calls: dict[int, ray.ObjectRef] = {}  # worker index -> metrics call
         self._reported: dict[int, CollectorMetrics] = {}  # worker index -> its last metrics
+        self._retired: list[CollectorMetrics] = []  # last reports of restarted workers
         self._stale: set[ray.ObjectRef] = set()  # collects acted by a dead learner's weights
         self._dead_learners: set[str] = set()  # actor ids of learners replaced
         self._started = 0.0
@@ -144,6 +145,7 @@ class RolloutService:
         self._retry_at.clear()
         self._metrics_calls.clear()
         self._reported.clear()
+        self._retired.clear()
         self._idle = set(range(len(self.workers)))
         for index in range(len(self.workers)):
             for _ in range(self.config.collects_per_worker - 1):
@@ -376,8 +378,12 @@ class RolloutService:
             if call in answered:
                 del self._metrics_calls[index]
                 with contextlib.suppress(RayActorError):  # died: its last report stands
-                    self._reported[index] = ray.get(call)
-        workers = [self._reported[i] for i in sorted(self._reported)]
+                    report = ray.get(call)
+                    last = self._reported.get(index)
+                    if last is not None and last.incarnation != report.incarnation:
+                        self._retired.append(last)  # Ray restarted it: keep what it did
+                    self._reported[index] = report
+        workers = self._retired + [self._reported[i] for i in sorted(self._reported)]
         metrics = self.metrics
         metrics.workers = workers
         metrics.env_steps = sum(w.env_steps for w in workers)
