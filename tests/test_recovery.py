@@ -72,8 +72,9 @@ def wait_gone(marker: str, seconds: float) -> list:
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("flag", ["--resume", "--resume-if-exists"])
-def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path, flag):
+def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path):
+    """Resumed as a retried job entrypoint would: ``--resume-if-exists`` (``--resume`` takes
+    the same path, and tests/test_train.py resumes a cleanly stopped run with it)."""
     write_config(tmp_path)
     marker = uuid.uuid4().hex
     driver = start_train(tmp_path, marker, "--max-steps", "1000000")
@@ -96,7 +97,7 @@ def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path, f
     assert step > 0 and version > 0 and adam > 0
 
     marker = uuid.uuid4().hex
-    resumed = start_train(tmp_path, marker, flag, "--max-steps", str(step + 6000))
+    resumed = start_train(tmp_path, marker, "--resume-if-exists", "--max-steps", str(step + 6000))
     try:
         output, _ = resumed.communicate(timeout=300)
     finally:
