@@ -96,6 +96,8 @@ def run(schedule: list[Fault], seconds: float, stop_at_90: bool, timeout_wait: i
         time.sleep(0.5)
     for process in left:
         process.kill()
+    log = results / "output.log"
+    log.write_text("".join(f"{t:8.1f}  {text}\n" for t, text in lines))
     summaries = [(t, int(m[1]), float(m[2])) for t, text in lines if (m := REWARD.search(text))]
     first = next(((t, s) for t, s, r in summaries if r >= 90), (None, None))
     summary_file = results / "run" / "summary.json"
@@ -115,6 +117,7 @@ def run(schedule: list[Fault], seconds: float, stop_at_90: bool, timeout_wait: i
         },
         "faults": summary.get("faults"),
         "steps": summary.get("steps"),
+        "log": str(log),
     }
 
 

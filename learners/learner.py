@@ -89,6 +89,31 @@ class LearnerStats:
     update_seconds: float = 0.0
     submit_seconds: float = 0.0
     updates: int = 0
+    duplicate_steps: int = 0  # segments delivered twice (Ray retries), taken once
+
+
+class Sources:
+    """The segment sources taken so far, to take each once. Per (incarnation, behavior): the
+    number up to which all were taken, and those taken above it (deliveries come nearly in
+    order, so the set stays small however long the run)."""
+
+    def __init__(self) -> None:
+        self._taken: dict[tuple[str, str], tuple[int, set[int]]] = {}
+
+    def first(self, segment: Segment) -> bool:
+        """Whether this is the first delivery of the segment's source (recording it)."""
+        assert segment.source is not None
+        incarnation, number = segment.source
+        key = (incarnation, segment.behavior)
+        upto, above = self._taken.get(key, (0, set()))
+        if number <= upto or number in above:
+            return False
+        above.add(number)
+        while upto + 1 in above:
+            upto += 1
+            above.discard(upto)
+        self._taken[key] = (upto, above)
+        return True
 
 
 class CentralLearner:
@@ -107,6 +132,7 @@ class CentralLearner:
         self.version = 0
         self.behaviors: dict[str, BehaviorState] = {}
         self.stats = LearnerStats()
+        self._sources = Sources()
         self._reports: list[tuple[str, int, dict[str, float]]] = []
 
     def prepare(self) -> None:
@@ -123,6 +149,9 @@ class CentralLearner:
         started = time.perf_counter()
         for segment in segments:
             if isinstance(segment, Segment):
+                if segment.source is not None and not self._sources.first(segment):
+                    self.stats.duplicate_steps += len(segment)  # a retried delivery
+                    continue
                 segment = segment.to_tensordict()
             behavior = segment.get_non_tensor(keys.BEHAVIOR)
             state = self._behavior(behavior, segment.get_non_tensor(keys.SPEC))

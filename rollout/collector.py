@@ -14,6 +14,7 @@ restarts on a fresh port.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import uuid
@@ -94,6 +95,7 @@ class Collector:
         self.weights: Weights = {}
         self.version = 0
         self.metrics = CollectorMetrics(incarnation=uuid.uuid4().hex)
+        self._collects = 0  # numbers this incarnation's segments (Segment.source)
         self._started = False
         self._agents_seen = False  # any agent of any behavior, ever
 
@@ -149,7 +151,11 @@ class Collector:
             if steps >= min_steps or (deadline is not None and time.perf_counter() >= deadline):
                 break
         self.metrics.seconds += time.perf_counter() - started
-        return [Segment.concat(parts) for parts in pieces.values()]
+        self._collects += bool(pieces)  # numbered without gaps: see learners.learner.Sources
+        source = (self.metrics.incarnation, self._collects)
+        return [
+            dataclasses.replace(Segment.concat(parts), source=source) for parts in pieces.values()
+        ]
 
     def _exchange(self, pieces: dict[str, list[Segment]]) -> int:
         unity, steps = self.unity, 0

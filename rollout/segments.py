@@ -56,6 +56,9 @@ class Segment:
     behavior: str
     spec: dict[str, Any]  # specs.spec_to_dict
     data: Mapping[str, Any]  # key -> array, or -> a mapping of the same kind
+    # (worker incarnation, collect number): the learner takes each source once, although
+    # Ray may deliver a task's result twice (retries)
+    source: tuple[str, int] | None = None
 
     def __len__(self) -> int:
         return len(self.data[keys.POLICY_VERSION])
@@ -90,7 +93,8 @@ class Segment:
             return np.concatenate(arrays)
 
         first = parts[0]
-        return Segment(first.behavior, first.spec, _walk(join, *(p.data for p in parts)))
+        data = _walk(join, *(p.data for p in parts))
+        return Segment(first.behavior, first.spec, data, first.source)
 
 
 def _walk(fn: Callable[..., Any], *trees: Mapping[str, Any]) -> dict[str, Any]:

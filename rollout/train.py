@@ -297,6 +297,8 @@ def _run(
         bool(received),
         latest,
     )
+    stats = progress.get("stats")  # segments Ray delivered twice, taken once
+    duplicates = stats.duplicate_steps if stats is not None else 0
     (run_dir / "summary.json").write_text(
         json.dumps(
             {
@@ -309,7 +311,7 @@ def _run(
                 "seconds": round(result.seconds, 1),
                 "checkpoint": str(final),
                 "interrupted": received[0] if received else None,
-                "faults": service.metrics.faults(),
+                "faults": {**service.metrics.faults(), "duplicate_steps": duplicates},
                 "startup": startup,
             },
             indent=2,

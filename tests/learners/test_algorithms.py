@@ -14,11 +14,12 @@ import torch
 from learners.acting import NetworkSettings
 from learners.config import defaults, parse_config
 from learners.impala import IMPALA
-from learners.learner import CentralLearner, policy_lag
+from learners.learner import CentralLearner, Sources, policy_lag
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
 from learners.ppo import PPO, Steps
 from rollout import keys
+from rollout.segments import Segment
 from tests.learners.fakes import segment, vector_spec
 
 
@@ -274,3 +275,39 @@ def test_hybrid_actions_are_shaped_right_and_masks_hold_in_the_torchrl_actor():
     forbidden = flat.clone()
     forbidden[..., 2] = 1.0
     assert (dist.log_prob(forbidden) < -1e6).all()  # zero probability
+
+
+def as_segment(batch, source) -> Segment:
+    """A fake TensorDict segment as workers send it (numpy, with its source)."""
+
+    def numpy(tree):
+        return {k: numpy(v) if isinstance(v, dict) else v.numpy() for k, v in tree.items()}
+
+    data = numpy(batch.exclude(*keys.METADATA).to_dict())
+    return Segment(
+        batch.get_non_tensor(keys.BEHAVIOR), batch.get_non_tensor(keys.SPEC), data, source
+    )
+
+
+def test_a_segment_delivered_twice_is_taken_once():
+    learner = CentralLearner(parse_config({"behaviors": {"A": {"trainer_type": "ppo"}}}))
+    spec = vector_spec(continuous=2)
+    first = as_segment(segment(spec, 2, 16, "A?team=0"), ("worker-x", 1))
+    second = as_segment(segment(spec, 1, 16, "A?team=0", seed=1), ("worker-x", 2))
+    learner.submit([first, second, first])  # Ray retried the first delivery
+    learner.submit([second])
+    assert learner.progress()["steps"] == {"A?team=0": 48}
+    assert learner.stats.duplicate_steps == 48
+    # the same numbers from another incarnation (a restarted worker) are new
+    learner.submit([as_segment(segment(spec, 1, 16, "A?team=0"), ("worker-y", 1))])
+    assert learner.progress()["steps"] == {"A?team=0": 64}
+
+
+def test_sources_stay_small_when_deliveries_come_in_order():
+    sources = Sources()
+    spec = vector_spec(continuous=2)
+    batch = segment(spec, 1, 4, "A?team=0")
+    for number in [2, 1, *range(3, 500)]:
+        assert sources.first(as_segment(batch, ("w", number)))
+    assert not sources.first(as_segment(batch, ("w", 7)))
+    assert sources._taken[("w", "A?team=0")] == (499, set())

@@ -179,3 +179,17 @@ def test_a_build_whose_agents_never_ask_for_decisions_is_one_line(allocator):
         assert collector.metrics.env_steps == NO_AGENT_STEPS
     finally:
         collector.close()
+
+
+def test_segments_name_their_source_for_the_learner_to_take_each_once(allocator):
+    collector = Collector(
+        UnityConfig("unitysim:3DBall", seed=2), actor_factory, horizon=10, allocator=allocator
+    )
+    try:
+        sources = [s.source for _ in range(3) for s in collector.collect(min_steps=1)]
+        incarnation = collector.metrics.incarnation
+        assert incarnation and sources == [(incarnation, 1), (incarnation, 2), (incarnation, 3)]
+    finally:
+        collector.close()
+    other = Collector(UnityConfig("unitysim:3DBall"), actor_factory, 10, allocator=allocator)
+    assert other.metrics.incarnation != incarnation  # a restarted worker: a new source
