@@ -25,6 +25,7 @@ from typing import Any, Protocol
 import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
+from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
 from rollout.segments import Decisions, Segment, SegmentBuilder, allowed_mask
 from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance
@@ -108,9 +109,11 @@ class Collector:
             self.metrics.first_step_at = time.time()
         self._started = True
 
-    def close(self) -> None:
+    def close(self) -> Collected:
+        """Close Unity; the last counts (rows in progress are dropped at shutdown)."""
         self.unity.close()
         self._started = False
+        return Collected([], self.metrics.incarnation, self.counts())
 
     def load_weights(self, version: int, weights: Weights) -> None:
         """Newest published weights (between segments only); older versions are ignored."""
@@ -126,7 +129,7 @@ class Collector:
 
     def collect(
         self, min_steps: int = 1, max_seconds: float | None = None, max_exchanges: int = 100_000
-    ) -> list[Segment]:
+    ) -> Collected:
         """Step Unity until at least ``min_steps`` steps of finished rows are here (or
         ``max_seconds`` passed, or ``max_exchanges``); returns one packed segment per
         behavior that finished rows."""
@@ -153,9 +156,19 @@ class Collector:
         self.metrics.seconds += time.perf_counter() - started
         self._collects += bool(pieces)  # numbered without gaps: see learners.learner.Sources
         source = (self.metrics.incarnation, self._collects)
-        return [
+        segments = [
             dataclasses.replace(Segment.concat(parts), source=source) for parts in pieces.values()
         ]
+        return Collected(segments, self.metrics.incarnation, self.counts())
+
+    def counts(self) -> dict[str, Counts]:
+        """Per behavior, what this collector recorded and where it went (the ledger)."""
+        return {
+            behavior: Counts(
+                b.counters.steps, b.counters.emitted_steps, b.counters.lost_steps, b.in_progress()
+            )
+            for behavior, b in self.builders.items()
+        }
 
     def _exchange(self, pieces: dict[str, list[Segment]]) -> int:
         unity, steps = self.unity, 0

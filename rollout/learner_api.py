@@ -1,7 +1,8 @@
 """The contract between rollout workers and a learner (``learners`` implements it).
 
 The service forwards each worker's segments (an ObjectRef to ``list[Segment]``, the
-format of docs/batch-format.md) with ``submit``; it keeps at most a few submissions in
+format of docs/batch-format.md; a ``rollout.ledger.Collected``, a list that also carries
+the worker's counts for the sample ledger) with ``submit``; it keeps at most a few submissions in
 flight, so a slow learner slows collection instead of growing a queue. ``submit`` returns
 the learner's newest weights version, and its demand: how many more steps it wants before
 its next on-policy update (None: any amount, as off-policy learners take). When the

@@ -112,6 +112,8 @@ class Counters:
     steps: int = 0  # transitions recorded
     rows: int = 0  # rows emitted
     dropped_steps: int = 0  # transitions thrown away (e.g. the player crashed mid-row)
+    emitted_steps: int = 0  # transitions handed out in rows
+    lost_steps: int = 0  # recorded transitions in rows thrown away (player failure)
     unmatched_terminals: int = 0  # terminal infos of agents that never acted
 
 
@@ -378,7 +380,13 @@ class SegmentBuilder:
         if self._mask_size:
             data[keys.ACTION_MASK] = take("mask")
         self.counters.rows += len(slots)
+        self.counters.emitted_steps += n
         return Segment(self.behavior, self._spec_dict, data)
+
+    def in_progress(self) -> int:
+        """Recorded transitions in rows not handed out yet: ``steps == emitted_steps +
+        lost_steps + in_progress()`` (the sample ledger, ``rollout.ledger``)."""
+        return int(self._f["length"][self._f["agent"] >= 0].sum())
 
     def drain_episodes(self) -> tuple[np.ndarray, np.ndarray]:
         """Returns and lengths (in decisions) of the episodes finished since the last call."""
@@ -391,7 +399,9 @@ class SegmentBuilder:
         """Forget every unfinished row (the player died): returns the steps dropped."""
         f = self._f
         active = f["agent"] >= 0
-        dropped = int(f["length"][active].sum() + f["pending"][active].sum())
+        lost = int(f["length"][active].sum())
+        self.counters.lost_steps += lost
+        dropped = lost + int(f["pending"][active].sum())
         f["agent"][:] = -1
         f["length"][:] = 0
         f["pending"][:] = False

@@ -31,9 +31,17 @@ import ray
 from ray.exceptions import ActorUnavailableError, RayActorError, RayTaskError
 
 from rollout import keys
-from rollout.collector import ActorFactory, CollectorMetrics
+from rollout.collector import ActorFactory
+from rollout.ledger import (
+    LEARNER_RESTART,
+    SHUTDOWN,
+    WORKER_DEATH,
+    Collected,
+    Ledger,
+    steps_of,
+)
 from rollout.ports import PortRange
-from rollout.service_metrics import ServiceMetrics
+from rollout.service_metrics import ServiceMetrics, WorkerReports
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker, WeightsLost
 
@@ -98,13 +106,13 @@ class RolloutService:
         self._idle: set[int] = set()  # workers that can take another collect
         self._submits: list[ray.ObjectRef] = []
         self._submit_steps: dict[ray.ObjectRef, int] = {}  # steps each submission carries
+        self._books: dict[ray.ObjectRef, tuple[int, str, dict[str, int]]] = {}  # ledger entries
+        self.ledger = Ledger()
         self._wanted: int | None = None  # the learner's last answer: steps before its update
         self._failures: list[int] = []  # consecutive failed collects per worker
         self._restarting: dict[int, float] = {}  # worker index -> when it went away
         self._retry_at: dict[int, float] = {}  # worker index -> when to ask it again
-        self._metrics_calls: dict[int, ray.ObjectRef] = {}  # worker index -> metrics call
-        self._reported: dict[int, CollectorMetrics] = {}  # worker index -> its last metrics
-        self._retired: list[CollectorMetrics] = []  # last reports of restarted workers
+        self._reports = WorkerReports()
         self._stale: set[ray.ObjectRef] = set()  # collects acted by a dead learner's weights
         self._dead_learners: set[str] = set()  # actor ids of learners replaced
         self._started = 0.0
@@ -143,9 +151,7 @@ class RolloutService:
         self._failures = [0] * len(self.workers)
         self._restarting.clear()
         self._retry_at.clear()
-        self._metrics_calls.clear()
-        self._reported.clear()
-        self._retired.clear()
+        self._reports = WorkerReports()
         self._idle = set(range(len(self.workers)))
         for index in range(len(self.workers)):
             for _ in range(self.config.collects_per_worker - 1):
@@ -155,21 +161,31 @@ class RolloutService:
     def stop(self) -> None:
         """Close every worker's Unity instance, then end the actors."""
         closing = [w.close.remote() for w in self.workers]
-        try:
-            ray.get(closing, timeout=60)
-        except Exception as error:  # a dead worker: its launch guard already took the player
-            log.warning("while closing workers: %s", error)
+        ray.wait(closing, num_returns=len(closing), timeout=60)
+        self._drain_submits(block=False, timeout=10.0, lost=SHUTDOWN)
         finished, _ = ray.wait(list(self._collects), num_returns=len(self._collects), timeout=0)
         for ref in finished:  # read, so that Ray does not report their errors as unhandled
             with contextlib.suppress(Exception):
-                ray.get(ref)
+                collected = ray.get(ref)
+                index = self._collects[ref][0]
+                self.ledger.arrived(index, collected)
+                self.ledger.book(index, collected.incarnation, steps_of(collected), SHUTDOWN)
+        for index, call in enumerate(closing):
+            try:
+                self.ledger.ended(index, SHUTDOWN, ray.get(call, timeout=0))
+            except Exception as error:  # dead: its launch guard already took the player
+                log.warning("while closing worker %d: %s", index, _last_line(error))
+                dead = isinstance(error, RayActorError)
+                self.ledger.ended(index, WORKER_DEATH if dead else SHUTDOWN)
+        self.metrics.dropped_by_reason = self.ledger.summary()["dropped"]
         for worker in self.workers:
             ray.kill(worker, no_restart=True)
         self.workers = []
-        self._metrics_calls.clear()
+        self._reports.calls.clear()
         self._collects.clear()
         self._submits.clear()
         self._submit_steps.clear()
+        self._books.clear()
         self._idle.clear()
 
     def __enter__(self) -> RolloutService:
@@ -233,10 +249,11 @@ class RolloutService:
         index, _ = self._collects.pop(ref)
         try:
             segments = ray.get(ref)
+            self.ledger.arrived(index, segments)
             if ref in self._stale:  # weights the restored learner never had: drop
                 self._stale.discard(ref)
-                self.metrics.learner_dropped_steps += sum(len(s) for s in segments)
-                segments = []
+                self.ledger.book(index, segments.incarnation, steps_of(segments), LEARNER_RESTART)
+                segments = Collected([], segments.incarnation, segments.counts)
         except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
             cause = getattr(error, "cause", None) or error
             if isinstance(cause, WeightsLost):  # restarted while idle: resend the weights
@@ -247,6 +264,7 @@ class RolloutService:
         except ActorUnavailableError as error:  # died, and Ray is bringing it back
             now = time.perf_counter()
             if index not in self._restarting:
+                self.ledger.ended(index, WORKER_DEATH)
                 self._count_failure(index, error)
                 self._restarting[index] = now
             elif now - self._restarting[index] > self.config.restart_wait_s:
@@ -264,6 +282,7 @@ class RolloutService:
                 if died in self._dead_learners:
                     return 0  # one that was replaced already
                 raise LearnerDied(_last_line(error)) from None
+            self.ledger.ended(index, WORKER_DEATH)
             self._count_failure(index, error)
             self._idle.add(index)
             return 0
@@ -274,6 +293,7 @@ class RolloutService:
             submit = self.learner.submit.remote(ref)
             self._submits.append(submit)
             self._submit_steps[submit] = sum(len(s) for s in segments)
+            self._books[submit] = (index, segments.incarnation, steps_of(segments))
             self._observe(segments)
         return len(segments)
 
@@ -289,20 +309,32 @@ class RolloutService:
         log.warning("worker %d died (%s); Ray restarts it", index, error)
         self._worker_version[index] = 0  # a restarted worker needs the weights again
 
-    def _drain_submits(self, block: bool, timeout: float | None = None) -> None:
+    def _drain_submits(
+        self, block: bool, timeout: float | None = None, lost: str | None = None
+    ) -> None:
+        """Take the learner's answers; ``lost``: the reason to book what does not come
+        back within ``timeout`` (at shutdown), instead of waiting for it."""
         if not self._submits:
             return
         done, self._submits = ray.wait(
             self._submits,
             num_returns=1 if block else len(self._submits),
-            timeout=timeout if block else 0,
+            timeout=timeout if (block or lost) else 0,
         )
         try:
             answers = ray.get(done)
         except RayActorError as error:
-            raise LearnerDied(_last_line(error)) from None
+            if lost is None:
+                raise LearnerDied(_last_line(error)) from None
+            self._submits += done  # booked as lost below
+            done, answers = [], []
+        for ref in self._submits if lost else []:
+            if ref in self._books:
+                self.ledger.book(*self._books.pop(ref), lost)
         for ref, (version, wanted) in zip(done, answers, strict=True):
             del self._submit_steps[ref]
+            if ref in self._books:
+                self.ledger.book(*self._books.pop(ref), "delivered")
             self._wanted = wanted
             if version > self._version:
                 self._version = version
@@ -311,12 +343,14 @@ class RolloutService:
     def replace_learner(self, learner: ray.actor.ActorHandle) -> None:
         """Route to a learner restored after the last one died. What was in flight to the
         dead one is lost, and collects now running act with weights the restored learner
-        never had: their steps are dropped (``learner_dropped_steps``). The restored
+        never had: their steps are dropped (the ledger's ``learner restart``). The restored
         learner's version is above any the dead one published (the driver sets it), so
         every worker takes its weights with its next collect."""
         self.metrics.learner_restarts += 1
         self._dead_learners.add(self.learner._actor_id.hex())
-        self.metrics.learner_dropped_steps += sum(self._submit_steps.values())
+        for book in self._books.values():
+            self.ledger.book(*book, LEARNER_RESTART)
+        self._books.clear()
         self._submits.clear()
         self._submit_steps.clear()
         self._stale = set(self._collects)
@@ -365,30 +399,9 @@ class RolloutService:
         return self.refresh_metrics(wait_s=REPORT_WAIT_S)
 
     def refresh_metrics(self, wait_s: float = 0.0) -> ServiceMetrics:
-        """Aggregate each worker's newest metrics. Never blocks on a worker (a hung player
-        holds its worker in ``step`` until ``timeout_wait``): one metrics call per worker
-        is in flight, answered between its collects, and a busy worker counts with what
-        it last reported. ``wait_s``: how long to wait for the calls in flight."""
-        for index, worker in enumerate(self.workers):
-            if index not in self._metrics_calls:
-                self._metrics_calls[index] = worker.metrics.remote()
-        calls = list(self._metrics_calls.values())
-        answered, _ = ray.wait(calls, num_returns=len(calls), timeout=wait_s)
-        for index, call in list(self._metrics_calls.items()):
-            if call in answered:
-                del self._metrics_calls[index]
-                with contextlib.suppress(RayActorError):  # died: its last report stands
-                    report = ray.get(call)
-                    last = self._reported.get(index)
-                    if last is not None and last.incarnation != report.incarnation:
-                        self._retired.append(last)  # Ray restarted it: keep what it did
-                    self._reported[index] = report
-        workers = self._retired + [self._reported[i] for i in sorted(self._reported)]
-        metrics = self.metrics
-        metrics.workers = workers
-        metrics.env_steps = sum(w.env_steps for w in workers)
-        metrics.agent_steps = sum(w.agent_steps for w in workers)
-        metrics.unity_restarts = sum(w.restarts for w in workers)
-        metrics.dropped_steps = sum(w.dropped_steps for w in workers)
-        metrics.seconds = time.perf_counter() - self._started
-        return metrics
+        """Aggregate each worker's newest metrics (``WorkerReports``: never blocks on a
+        busy or hung worker). ``wait_s``: how long to wait for the calls in flight."""
+        self.metrics.take(self._reports.poll(self.workers, wait_s))
+        self.metrics.dropped_by_reason = self.ledger.summary()["dropped"]
+        self.metrics.seconds = time.perf_counter() - self._started
+        return self.metrics

@@ -1,9 +1,15 @@
 """What the rollout service counts, aggregated over its workers: steps, segments, policy
-lag, faults (worker, Unity and learner restarts) and the steps they dropped."""
+lag, faults (worker, Unity and learner restarts) and the steps they dropped; and how it
+gathers the workers' reports."""
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
+from typing import Any
+
+import ray
+from ray.exceptions import RayActorError
 
 from rollout.collector import CollectorMetrics
 
@@ -17,12 +23,20 @@ class ServiceMetrics:
     unity_restarts: int = 0
     dropped_steps: int = 0
     learner_restarts: int = 0
-    learner_dropped_steps: int = 0  # in flight to, or acted by the weights of, a dead learner
+    dropped_by_reason: dict[str, int] = field(default_factory=dict)  # the sample ledger's
     policy_lag_max: int = 0
     policy_lag_sum: int = 0
     policy_lag_count: int = 0
     seconds: float = 0.0
     workers: list[CollectorMetrics] = field(default_factory=list)
+
+    def take(self, workers: list[CollectorMetrics]) -> None:
+        """Totals over the workers' reports (restarted workers' included)."""
+        self.workers = workers
+        self.env_steps = sum(w.env_steps for w in workers)
+        self.agent_steps = sum(w.agent_steps for w in workers)
+        self.unity_restarts = sum(w.restarts for w in workers)
+        self.dropped_steps = sum(w.dropped_steps for w in workers)
 
     def faults(self) -> dict[str, int]:
         """Every fault so far and the steps faults cost (live table, summary.json)."""
@@ -30,7 +44,7 @@ class ServiceMetrics:
             "unity_restarts": self.unity_restarts,
             "worker_restarts": self.worker_restarts,
             "learner_restarts": self.learner_restarts,
-            "dropped_steps": self.dropped_steps + self.learner_dropped_steps,
+            "dropped_steps": sum(self.dropped_by_reason.values()),
         }
 
     @property
@@ -57,3 +71,32 @@ class ServiceMetrics:
             for name, (episodes, returns, _) in self.episode_totals().items()
             if episodes
         }
+
+
+class WorkerReports:
+    """The workers' newest metrics, never waiting on a worker: a hung player holds its
+    worker in ``step`` until ``timeout_wait``, so one ``metrics`` call per worker is in
+    flight, answered between its collects, and a busy worker counts with what it last
+    reported. A restarted worker (a new incarnation) adds to what its last one did."""
+
+    def __init__(self) -> None:
+        self.calls: dict[int, ray.ObjectRef] = {}  # worker index -> its metrics call
+        self._reported: dict[int, CollectorMetrics] = {}  # worker index -> its last report
+        self._retired: list[CollectorMetrics] = []  # last reports of restarted workers
+
+    def poll(self, workers: list[Any], wait_s: float) -> list[CollectorMetrics]:
+        for index, worker in enumerate(workers):
+            if index not in self.calls:
+                self.calls[index] = worker.metrics.remote()
+        calls = list(self.calls.values())
+        answered, _ = ray.wait(calls, num_returns=len(calls), timeout=wait_s)
+        for index, call in list(self.calls.items()):
+            if call in answered:
+                del self.calls[index]
+                with contextlib.suppress(RayActorError):  # died: its last report stands
+                    report = ray.get(call)
+                    last = self._reported.get(index)
+                    if last is not None and last.incarnation != report.incarnation:
+                        self._retired.append(last)
+                    self._reported[index] = report
+        return self._retired + [self._reported[i] for i in sorted(self._reported)]

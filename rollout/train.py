@@ -312,6 +312,7 @@ def _run(
                 "checkpoint": str(final),
                 "interrupted": received[0] if received else None,
                 "faults": {**service.metrics.faults(), "duplicate_steps": duplicates},
+                "ledger": service.ledger.summary(),
                 "startup": startup,
             },
             indent=2,

@@ -15,8 +15,8 @@ import sys
 import ray
 
 from rollout.collector import ActorFactory, Collector, CollectorMetrics, Weights
+from rollout.ledger import Collected
 from rollout.ports import PortAllocator, PortRange
-from rollout.segments import Segment
 from rollout.unity import UnityConfig
 
 
@@ -57,7 +57,7 @@ class RolloutWorker:
         published: tuple[int, Weights] | None,
         min_steps: int,
         max_seconds: float | None = None,
-    ) -> list[Segment]:
+    ) -> Collected:
         """``published``: the learner's ``weights()`` result, (version, weights), or None
         when this worker already has the newest version. A restart that no call saw (the
         worker died while idle) shows here: the service would otherwise never resend weights."""
@@ -82,5 +82,5 @@ class RolloutWorker:
             "restarts": unity.restarts,
         }
 
-    def close(self) -> None:
-        self.collector.close()
+    def close(self) -> Collected:
+        return self.collector.close()

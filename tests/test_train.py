@@ -47,6 +47,11 @@ def test_a_short_run_beats_the_random_policy(trained):
     assert reward is not None and reward > 5 * RANDOM_3DBALL_RETURN
     summary = json.loads((result.run_dir / "summary.json").read_text())
     assert summary["steps"] >= 60_000 and summary["interrupted"] is None
+    ledger = summary["ledger"]  # no fault: nothing dropped but what the end cut off
+    assert ledger["balanced"] and ledger["delivered"] >= 60_000, ledger
+    assert {r: n for r, n in ledger["dropped"].items() if n} == {
+        "shutdown": ledger["produced"] - ledger["delivered"]
+    }
     events = list((result.run_dir / "3DBall_team0").glob("events.out.tfevents.*"))
     assert events, "TensorBoard events per behavior"
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

@@ -128,6 +128,13 @@ def test_killed_player_restarts_and_no_partial_row_is_emitted(allocator):
         metrics = collector.snapshot()
         assert metrics.restarts == 1 and collector.unity.port != old_port
         assert metrics.dropped_steps > 0
+        # the ledger's side of the collector: every recorded step is somewhere
+        counts = collector.counts()
+        assert counts and all(c.lost > 0 for c in counts.values())
+        for c in counts.values():
+            assert c.produced == c.emitted + c.lost + c.in_progress, c
+        emitted = sum(c.emitted for c in counts.values())
+        assert emitted >= sum(s.batch_size[0] for s in segments)  # + the first collect's
         for segment in segments:  # rows mixing pre- and post-crash data would fail here
             behavior = segment.get_non_tensor(keys.BEHAVIOR)
             check_echo_segment(segment, collector.unity.behavior_specs[behavior], horizon=8)
