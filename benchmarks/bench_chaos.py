@@ -82,7 +82,11 @@ def run(schedule: list[Fault], seconds: float, stop_at_90: bool, timeout_wait: i
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    with ChaosDriver(driver.pid, schedule, seed=len(schedule)) as chaos:
+
+    def training() -> bool:
+        return any(REWARD.search(text) for _, text in list(lines))
+
+    with ChaosDriver(driver.pid, schedule, seed=len(schedule), ready=training) as chaos:
         while driver.poll() is None:
             reached = [m for _, text in lines if (m := REWARD.search(text)) and float(m[2]) >= 90]
             if stop_at_90 and reached:

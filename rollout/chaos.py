@@ -18,6 +18,7 @@ import random
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import psutil
@@ -97,17 +98,25 @@ def processes(driver_pid: int, role: str) -> list[psutil.Process]:
 class ChaosDriver:
     """Runs a schedule against a run on a thread; ``injected`` lists what it did."""
 
-    def __init__(self, driver_pid: int, schedule: list[Fault], seed: int = 0) -> None:
+    def __init__(
+        self,
+        driver_pid: int,
+        schedule: list[Fault],
+        seed: int = 0,
+        ready: Callable[[], bool] | None = None,
+    ) -> None:
+        """``ready``: when the schedule's clock starts (e.g. at the run's first summary: a
+        run's first launch of a build is strict, a crash there ends it as a bad build)."""
         self.driver_pid = driver_pid
+        self.ready = ready
         self.plan = sorted((at, f.kind) for f in schedule for at in f.due())
         self.random = random.Random(seed)
         self.injected: list[Injected] = []
-        self.started = time.monotonic()  # the schedule's zero (reset by ``with``)
+        self.started = time.monotonic()  # the schedule's zero (set again once ready)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def __enter__(self) -> ChaosDriver:
-        self.started = time.monotonic()
         self._thread.start()
         return self
 
@@ -116,6 +125,10 @@ class ChaosDriver:
         self._thread.join(timeout=10)
 
     def _run(self) -> None:
+        while self.ready is not None and not self.ready():  # the clock starts with training
+            if self._stop.wait(0.2):
+                return
+        self.started = time.monotonic()
         for at, kind in self.plan:
             if self._stop.wait(max(0.0, self.started + at - time.monotonic())):
                 return

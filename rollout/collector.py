@@ -28,7 +28,13 @@ from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
 from rollout.segments import Decisions, Segment, SegmentBuilder, allowed_mask
-from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance
+from rollout.unity import (
+    RECOVERABLE,
+    UnityConfig,
+    UnityError,
+    UnityInstance,
+    UnityStartError,
+)
 
 log = logging.getLogger(__name__)
 NO_AGENT_STEPS = 3000  # environment steps without any agent before a run gives up on a build
@@ -102,8 +108,16 @@ class Collector:
 
     # --- lifecycle ----------------------------------------------------------------------
 
-    def start(self) -> None:
-        self.unity.start()
+    def start(self, restarted: bool = False) -> None:
+        """``restarted``: this collector replaces one that died in this run, so the build
+        has worked: a failed launch is retried as any restart is (within the restart
+        policy), not final as a run's first launch is."""
+        try:
+            self.unity.start()
+        except (UnityStartError, *RECOVERABLE) as error:
+            if not restarted:
+                raise
+            self.unity.restart(f"{type(error).__name__}: {error}")
         self.unity.reset()
         if self.metrics.first_step_at is None:
             self.metrics.first_step_at = time.time()

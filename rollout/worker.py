@@ -46,8 +46,9 @@ class RolloutWorker:
         allocator = PortAllocator(port_range, registry_dir)
         self.collector = Collector(unity, actor_factory, horizon, index, allocator)
         self._start_error: Exception | None = None
+        restarted = ray.get_runtime_context().was_current_actor_reconstructed
         try:
-            self.collector.start()
+            self.collector.start(restarted)
         except Exception as error:  # said by the first collect: a failed __init__ would
             self._start_error = error  # have Ray restart the actor and launch again
 

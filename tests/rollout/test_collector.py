@@ -17,7 +17,7 @@ from rollout import keys
 from rollout.collector import NO_AGENT_STEPS, Collector
 from rollout.restarts import RestartPolicy
 from rollout.specs import step_spec
-from rollout.unity import UnityConfig, UnityError
+from rollout.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import leak_checked_allocator, trajectories
 
 pytestmark = pytest.mark.integration
@@ -200,3 +200,31 @@ def test_segments_name_their_source_for_the_learner_to_take_each_once(allocator)
         collector.close()
     other = Collector(UnityConfig("unitysim:3DBall"), actor_factory, 10, allocator=allocator)
     assert other.metrics.incarnation != incarnation  # a restarted worker: a new source
+
+
+def test_a_restarted_workers_failed_launch_is_retried_but_a_runs_first_is_final(
+    allocator, tmp_path
+):
+    from unitysim.launcher import build as build_launchers
+
+    (launcher,) = build_launchers(tmp_path / "build", ["3DBall"])
+    marker = tmp_path / "launched-once"
+    flaky = tmp_path / "Flaky.x86_64"  # dies at its first launch, works after
+    flaky.write_text(
+        f'#!/bin/sh\nif [ ! -e "{marker}" ]; then touch "{marker}"; exit 0; fi\n'
+        f'exec "{launcher}" "$@"\n'
+    )
+    flaky.chmod(0o755)
+    config = UnityConfig(str(flaky), restarts=RestartPolicy(backoff_s=0.0), timeout_wait=20)
+    first = Collector(config, actor_factory, horizon=10, allocator=allocator)
+    with pytest.raises(UnityStartError, match="exited with code 0 before it connected"):
+        first.start()  # a run's first launch: a build that exits is a bad build
+    first.close()
+    marker.unlink()
+    restarted = Collector(config, actor_factory, horizon=10, allocator=allocator)
+    try:
+        restarted.start(restarted=True)  # Ray's restart of a worker: the build has worked
+        assert restarted.unity.restarts == 1
+        assert restarted.collect(min_steps=1)
+    finally:
+        restarted.close()
