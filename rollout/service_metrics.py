@@ -44,7 +44,8 @@ class ServiceMetrics:
             "unity_restarts": self.unity_restarts,
             "worker_restarts": self.worker_restarts,
             "learner_restarts": self.learner_restarts,
-            "dropped_steps": sum(self.dropped_by_reason.values()),
+            # the ledger's drops but those of the run's own end
+            "dropped_steps": sum(n for r, n in self.dropped_by_reason.items() if r != "shutdown"),
         }
 
     @property
