@@ -12,8 +12,9 @@ Two parts, in one invocation:
 2. **Sustained**, one chaos run at the schedule's own pace for ``--sustained-s`` seconds
    (learner killed at 45 s): it must reach 90 and stay there while faults go on.
 
-Every chaos run is checked: exit 0, no traceback, each fault that reached a process shows
-in ``summary.json``, and no process of the run outlives it.
+Every run reports: its exit code, any traceback, the faults injected against those
+``summary.json`` counts, whether its sample ledger balances, and the processes of the run
+that outlived it.
 
     .venv/bin/python benchmarks/bench_chaos.py [--rounds 3] [--sustained-s 360]
 """
@@ -120,6 +121,8 @@ def run(schedule: list[Fault], seconds: float, stop_at_90: bool, timeout_wait: i
             k: chaos.count(k) for k in ("kill-player", "hang-player", "kill-worker", "kill-learner")
         },
         "faults": summary.get("faults"),
+        "ledger": summary.get("ledger", {}).get("dropped"),
+        "ledger_balanced": summary.get("ledger", {}).get("balanced"),
         "steps": summary.get("steps"),
         "log": str(log),
     }

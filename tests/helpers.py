@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import os
 import random
+import signal
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -141,3 +145,35 @@ def run_marked(marker: str) -> list[psutil.Process]:
         except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
             continue
     return found
+
+
+def start_train_cli(marker: str, *args: str) -> subprocess.Popen:
+    """``unity-rollout train --no-progress ARGS`` in a session of its own, every process of
+    it marked for ``run_marked``; its output as text on ``stdout``."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "rollout.cli", "train", "--no-progress", *args],
+        env={**os.environ, "UNITY_ROLLOUT_TEST_RUN": marker},
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def kill_run(driver: subprocess.Popen) -> None:
+    """A test's last word on a run it started (a ``finally``): its session, SIGKILLed."""
+    if driver.poll() is None:
+        os.killpg(driver.pid, signal.SIGKILL)
+        driver.wait()
+
+
+def assert_run_gone(marker: str, seconds: float = 60) -> None:
+    """Every process of the run exits within ``seconds``; leftovers are killed by PID and
+    fail the test."""
+    deadline = time.monotonic() + seconds
+    while (left := run_marked(marker)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for process in left:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            process.kill()
+    assert not left, f"processes outlived the run: {[p.cmdline()[:3] for p in left]}"

@@ -9,11 +9,9 @@ budget of steps, stop gracefully on SIGTERM, show every fault in its output and 
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 import uuid
@@ -22,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from rollout.chaos import ChaosDriver
-from tests.helpers import run_marked
+from tests.helpers import assert_run_gone, kill_run, start_train_cli
 
 pytestmark = pytest.mark.integration
 
@@ -69,16 +67,10 @@ def wait_until(condition, what: str, output: Output, driver: subprocess.Popen, s
 
 def test_training_goes_on_while_faults_keep_coming(tmp_path):
     marker = uuid.uuid4().hex
-    command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress"]
-    command += ["--results-dir", str(tmp_path), "--max-steps", "100000000"]
-    command += ["--timeout-wait", "5"]  # a hung player is found in 5 s
-    driver = subprocess.Popen(
-        command,
-        env={**os.environ, "UNITY_ROLLOUT_TEST_RUN": marker},
-        start_new_session=True,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
+    driver = start_train_cli(
+        marker,
+        *("--results-dir", str(tmp_path), "--max-steps", "100000000"),
+        *("--timeout-wait", "5"),  # a hung player is found in 5 s
     )
     output, started = Output(driver), time.monotonic()
     chaos = ChaosDriver(driver.pid, [], seed=1)
@@ -117,9 +109,7 @@ def test_training_goes_on_while_faults_keep_coming(tmp_path):
         driver.send_signal(signal.SIGTERM)
         driver.wait(timeout=120)
     finally:
-        if driver.poll() is None:
-            os.killpg(driver.pid, signal.SIGKILL)
-            driver.wait()
+        kill_run(driver)
     time.sleep(0.5)  # the reader thread's last lines
     assert driver.returncode == 0, output.text()
     assert not any("Traceback" in line for line in output.lines), output.text()
@@ -138,9 +128,4 @@ def test_training_goes_on_while_faults_keep_coming(tmp_path):
     by_faults = sum(ledger["dropped"].values()) - ledger["dropped"]["shutdown"]
     assert by_faults == faults["dropped_steps"]
     assert set(ledger["workers"]) == {"0", "1"}
-    deadline = time.monotonic() + 60
-    while (left := run_marked(marker)) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    for process in left:
-        process.kill()
-    assert not left, f"processes outlived the run: {[p.cmdline()[:3] for p in left]}"
+    assert_run_gone(marker)

@@ -11,10 +11,8 @@ What came after that checkpoint is lost: at most one checkpoint_interval."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
@@ -25,7 +23,7 @@ import yaml
 from learners import checkpoint
 from learners.config import CONFIG_DIR
 from rollout.train import TrainOptions, prepare_run_dir
-from tests.helpers import run_marked
+from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
 
 BEHAVIOR = "3DBall?team=0"
 
@@ -52,23 +50,8 @@ def wait_for_checkpoints(driver: subprocess.Popen, checkpoints: Path, count: int
 
 
 def start_train(results: Path, marker: str, *extra: str) -> subprocess.Popen:
-    command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress"]
-    command += ["--results-dir", str(results), "--config", str(results / "3DBall.yaml"), *extra]
-    return subprocess.Popen(
-        command,
-        env={**os.environ, "UNITY_ROLLOUT_TEST_RUN": marker},
-        start_new_session=True,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-
-
-def wait_gone(marker: str, seconds: float) -> list:
-    deadline = time.monotonic() + seconds
-    while (left := run_marked(marker)) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    return left
+    config = str(results / "3DBall.yaml")
+    return start_train_cli(marker, "--results-dir", str(results), "--config", config, *extra)
 
 
 @pytest.mark.integration
@@ -83,13 +66,8 @@ def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path):
         driver.kill()  # SIGKILL: no handler, no final checkpoint
         driver.wait(timeout=30)
     finally:
-        if driver.poll() is None:
-            os.killpg(driver.pid, signal.SIGKILL)
-            driver.wait()
-    left = wait_gone(marker, 60)
-    for process in left:
-        process.kill()
-    assert not left, f"processes outlived the killed driver: {[p.cmdline()[:3] for p in left]}"
+        kill_run(driver)
+    assert_run_gone(marker)  # the driver's death took every process of the run
     assert not (tmp_path / "run" / "summary.json").exists()  # it really died mid-run
 
     last = checkpoint.load(tmp_path / "run")
@@ -101,11 +79,9 @@ def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path):
     try:
         output, _ = resumed.communicate(timeout=300)
     finally:
-        if resumed.poll() is None:
-            os.killpg(resumed.pid, signal.SIGKILL)
-            resumed.wait()
+        kill_run(resumed)
     assert resumed.returncode == 0, output[-2000:]
-    assert not wait_gone(marker, 60)
+    assert_run_gone(marker)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     final = checkpoint.load(summary["checkpoint"])
     assert final["step"] == summary["steps"] >= step + 6000
@@ -139,9 +115,7 @@ def test_a_killed_learner_comes_back_from_the_checkpoint_and_the_run_goes_on(tmp
         learners[0].send_signal(signal.SIGKILL)
         output, _ = driver.communicate(timeout=300)
     finally:
-        if driver.poll() is None:
-            os.killpg(driver.pid, signal.SIGKILL)
-            driver.wait()
+        kill_run(driver)
     assert driver.returncode == 0, output[-3000:]
     assert "Traceback" not in output, output[-3000:]
     said = [line for line in output.splitlines() if "the learner died" in line]
@@ -151,7 +125,4 @@ def test_a_killed_learner_comes_back_from_the_checkpoint_and_the_run_goes_on(tmp
     assert summary["faults"]["learner_restarts"] == 1
     assert summary["steps"] >= 40000
     assert summary["version"] > at_kill["version"]
-    left = wait_gone(marker, 60)
-    for process in left:
-        process.kill()
-    assert not left, f"processes outlived the run: {[p.cmdline()[:3] for p in left]}"
+    assert_run_gone(marker)

@@ -25,7 +25,7 @@ import torch
 from learners import checkpoint
 from learners.export import export_checkpoint
 from rollout.train import TrainingError, TrainOptions, train
-from tests.helpers import run_marked
+from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
 
 pytestmark = pytest.mark.integration
 
@@ -113,17 +113,12 @@ def _connections(process: psutil.Process) -> list:
 @pytest.mark.parametrize("how", ["SIGTERM to the driver", "SIGINT to the process group"])
 def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
     marker = uuid.uuid4().hex
-    env = {**os.environ, "UNITY_ROLLOUT_TEST_RUN": marker}
-    command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress"]
-    command += ["--results-dir", str(tmp_path), "--max-seconds", "300"]
-    driver = subprocess.Popen(
-        command, env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT
-    )
+    driver = start_train_cli(marker, "--results-dir", str(tmp_path), "--max-seconds", "300")
     try:
         run_dir = Path(tmp_path) / "run"
         deadline = time.monotonic() + 120
         while not list((run_dir / "3DBall_team0").glob("events.*")):  # training has begun
-            assert driver.poll() is None, driver.stdout.read().decode() if driver.stdout else ""
+            assert driver.poll() is None, driver.stdout.read() if driver.stdout else ""
             assert time.monotonic() < deadline, "training did not start"
             time.sleep(0.5)
         listening = {
@@ -140,21 +135,14 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
         else:
             os.killpg(driver.pid, signal.SIGINT)
         output, _ = driver.communicate(timeout=90)
-        assert driver.returncode == 0, output.decode()[-2000:]
+        assert driver.returncode == 0, output[-2000:]
         summary = json.loads((run_dir / "summary.json").read_text())
         assert summary["interrupted"] == how.split()[0]
         final = checkpoint.load(summary["checkpoint"])
         assert final["step"] == summary["steps"] > 0
     finally:
-        if driver.poll() is None:
-            os.killpg(driver.pid, signal.SIGKILL)
-            driver.wait()
-    deadline = time.monotonic() + 30
-    while (left := run_marked(marker)) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    for process in left:
-        process.kill()
-    assert not left, f"processes of the run outlived it: {[p.cmdline()[:3] for p in left]}"
+        kill_run(driver)
+    assert_run_gone(marker, 30)
 
 
 @pytest.mark.parametrize(
