@@ -19,6 +19,7 @@ import ray
 # Ray's own figures: the smallest object store it accepts, and its default share of memory.
 RAY_MIN_OBJECT_STORE = 75 * 1024**2
 RAY_OBJECT_STORE_SHARE = 0.3
+GCS_WAIT = "RAY_gcs_server_port_wait_time_s"  # Ray's variable: seconds for its GCS to start
 
 
 def object_store_bytes(shm_free: int, memory: int) -> int | None:
@@ -48,7 +49,10 @@ def init_local_ray(cpus: int) -> None:
     the command that launched them; Ray's default, niceness 15, would hand their CPU to
     every other process on a shared machine. On a cluster the operator sets it at
     ``ray start`` (``RAY_worker_niceness``; deploy/README.md). The object store fits
-    /dev/shm (``object_store_bytes``)."""
+    /dev/shm (``object_store_bytes``). Ray gives its GCS server 30 s to come up; with every
+    core taken by other work that start took longer, and the run died in ``ray.init``:
+    local mode waits up to 3 minutes unless the user set Ray's own variable."""
+    os.environ.setdefault(GCS_WAIT, "180")
     ray.init(
         num_cpus=cpus,
         include_dashboard=False,

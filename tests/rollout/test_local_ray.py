@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 from rollout.local_ray import RAY_MIN_OBJECT_STORE, _shm_free, object_store_bytes
 
 GIB = 1024**3
@@ -24,3 +26,19 @@ def test_below_rays_minimum_ray_decides():
 
 def test_reads_this_machines_shm():
     assert _shm_free() > 0
+
+
+def test_local_mode_gives_rays_gcs_time_on_a_busy_machine(monkeypatch):
+    import ray
+
+    from rollout import local_ray
+
+    started = {}
+    monkeypatch.delenv(local_ray.GCS_WAIT, raising=False)
+    monkeypatch.setattr(ray, "init", lambda **kwargs: started.update(kwargs))
+    local_ray.init_local_ray(2)
+    assert started["num_cpus"] == 2
+    assert int(os.environ[local_ray.GCS_WAIT]) >= 120  # Ray's own: 30 s
+    monkeypatch.setenv(local_ray.GCS_WAIT, "45")  # the user's choice stands
+    local_ray.init_local_ray(2)
+    assert os.environ[local_ray.GCS_WAIT] == "45"
