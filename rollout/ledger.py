@@ -106,17 +106,24 @@ class Ledger:
             entry = self._entry(index, incarnation, behavior)
             entry.dropped[reason] += counts.in_progress
 
+    def _rows(self) -> dict[tuple[int, str, str], Entry]:
+        """Every (worker index, incarnation, behavior): what the service booked, with what
+        the worker's last counts say it produced and lost to player failures."""
+        rows = {key: Entry(0, e.delivered, Counter(e.dropped)) for key, e in self._entries.items()}
+        for (index, incarnation), counts in self._counts.items():
+            for behavior, c in counts.items():
+                row = rows.setdefault((index, incarnation, behavior), Entry())
+                row.produced = c.produced
+                row.dropped[PLAYER_FAILURE] = c.lost
+        return rows
+
     def summary(self) -> dict[str, Any]:
         """Per worker index and behavior (incarnations added up), totals, and whether every
         closed incarnation balances exactly."""
-        for (index, incarnation), counts in self._counts.items():
-            for behavior, c in counts.items():
-                entry = self._entry(index, incarnation, behavior)
-                entry.produced = c.produced
-                entry.dropped[PLAYER_FAILURE] = c.lost
+        rows = self._rows()
         workers: dict[str, dict[str, dict[str, Any]]] = {}
         total = Entry()
-        for (index, _, behavior), entry in sorted(self._entries.items()):
+        for (index, _, behavior), entry in sorted(rows.items()):
             row = workers.setdefault(str(index), {}).setdefault(
                 behavior, {"produced": 0, "delivered": 0, "dropped": dict.fromkeys(REASONS, 0)}
             )
@@ -127,18 +134,21 @@ class Ledger:
             total.produced += entry.produced
             total.delivered += entry.delivered
             total.dropped.update(entry.dropped)
-        closed = [e for (_, inc, _), e in self._entries.items() if inc in self._closed]
+        closed = [e for (_, inc, _), e in rows.items() if inc in self._closed]
         return {
             "workers": workers,
             "produced": total.produced,
             "delivered": total.delivered,
             "dropped": {reason: total.dropped[reason] for reason in REASONS},
-            "balanced": all(e.balanced() for e in closed) and len(closed) == len(self._entries),
+            "balanced": all(e.balanced() for e in closed) and len(closed) == len(rows),
         }
 
-    def dropped(self) -> int:
-        """Steps dropped so far, every reason (the live table)."""
-        lost = sum(c.lost for counts in self._counts.values() for c in counts.values())
-        booked = sum(sum(e.dropped.values()) for e in self._entries.values())
-        booked -= sum(e.dropped[PLAYER_FAILURE] for e in self._entries.values())
-        return lost + booked
+    def dropped_by_reason(self) -> dict[str, int]:
+        """Steps dropped so far, per reason (the live table; cheaper than ``summary``)."""
+        dropped = Counter({PLAYER_FAILURE: 0})
+        for entry in self._entries.values():
+            dropped.update(entry.dropped)
+        dropped[PLAYER_FAILURE] = sum(
+            c.lost for counts in self._counts.values() for c in counts.values()
+        )
+        return {reason: dropped[reason] for reason in REASONS}

@@ -177,7 +177,7 @@ class RolloutService:
                 log.warning("while closing worker %d: %s", index, _last_line(error))
                 dead = isinstance(error, RayActorError)
                 self.ledger.ended(index, WORKER_DEATH if dead else SHUTDOWN)
-        self.metrics.dropped_by_reason = self.ledger.summary()["dropped"]
+        self.metrics.dropped_by_reason = self.ledger.dropped_by_reason()
         for worker in self.workers:
             ray.kill(worker, no_restart=True)
         self.workers = []
@@ -402,6 +402,6 @@ class RolloutService:
         """Aggregate each worker's newest metrics (``WorkerReports``: never blocks on a
         busy or hung worker). ``wait_s``: how long to wait for the calls in flight."""
         self.metrics.take(self._reports.poll(self.workers, wait_s))
-        self.metrics.dropped_by_reason = self.ledger.summary()["dropped"]
+        self.metrics.dropped_by_reason = self.ledger.dropped_by_reason()
         self.metrics.seconds = time.perf_counter() - self._started
         return self.metrics

@@ -12,6 +12,7 @@ import ray
 from ray.exceptions import RayActorError
 
 from rollout.collector import CollectorMetrics
+from rollout.ledger import SHUTDOWN
 
 
 @dataclass
@@ -45,7 +46,7 @@ class ServiceMetrics:
             "worker_restarts": self.worker_restarts,
             "learner_restarts": self.learner_restarts,
             # the ledger's drops but those of the run's own end
-            "dropped_steps": sum(n for r, n in self.dropped_by_reason.items() if r != "shutdown"),
+            "dropped_steps": sum(n for r, n in self.dropped_by_reason.items() if r != SHUTDOWN),
         }
 
     @property
