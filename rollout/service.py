@@ -36,7 +36,6 @@ from rollout.ledger import (
     LEARNER_RESTART,
     SHUTDOWN,
     WORKER_DEATH,
-    Collected,
     Ledger,
     steps_of,
 )
@@ -105,8 +104,8 @@ class RolloutService:
         self._collects: dict[ray.ObjectRef, tuple[int, int]] = {}  # -> (worker, min steps)
         self._idle: set[int] = set()  # workers that can take another collect
         self._submits: list[ray.ObjectRef] = []
-        self._submit_steps: dict[ray.ObjectRef, int] = {}  # steps each submission carries
-        self._books: dict[ray.ObjectRef, tuple[int, str, dict[str, int]]] = {}  # ledger entries
+        # per submission: (worker, incarnation, steps per behavior), for demand and ledger
+        self._books: dict[ray.ObjectRef, tuple[int, str, dict[str, int]]] = {}
         self.ledger = Ledger()
         self._wanted: int | None = None  # the learner's last answer: steps before its update
         self._failures: list[int] = []  # consecutive failed collects per worker
@@ -146,7 +145,6 @@ class RolloutService:
         else:  # answered whenever the learner is up, like any submission
             self._version, self._wanted = 0, None
             self._submits.append(first)
-            self._submit_steps[first] = 0
         self._worker_version = [0] * len(self.workers)
         self._failures = [0] * len(self.workers)
         self._restarting.clear()
@@ -184,7 +182,6 @@ class RolloutService:
         self._reports.calls.clear()
         self._collects.clear()
         self._submits.clear()
-        self._submit_steps.clear()
         self._books.clear()
         self._idle.clear()
 
@@ -217,7 +214,7 @@ class RolloutService:
             self._idle.difference_update(idle)
             return
         coming = sum(steps for _, steps in self._collects.values())
-        coming += sum(self._submit_steps.values())
+        coming += sum(sum(steps.values()) for _, _, steps in self._books.values())
         missing = self._wanted - coming
         if missing <= 0:
             return  # in flight already fills the next update: wait for its weights
@@ -253,7 +250,7 @@ class RolloutService:
             if ref in self._stale:  # weights the restored learner never had: drop
                 self._stale.discard(ref)
                 self.ledger.book(index, segments.incarnation, steps_of(segments), LEARNER_RESTART)
-                segments = Collected([], segments.incarnation, segments.counts)
+                segments = []
         except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
             cause = getattr(error, "cause", None) or error
             if isinstance(cause, WeightsLost):  # restarted while idle: resend the weights
@@ -292,7 +289,6 @@ class RolloutService:
         if segments:
             submit = self.learner.submit.remote(ref)
             self._submits.append(submit)
-            self._submit_steps[submit] = sum(len(s) for s in segments)
             self._books[submit] = (index, segments.incarnation, steps_of(segments))
             self._observe(segments)
         return len(segments)
@@ -332,7 +328,6 @@ class RolloutService:
             if ref in self._books:
                 self.ledger.book(*self._books.pop(ref), lost)
         for ref, (version, wanted) in zip(done, answers, strict=True):
-            del self._submit_steps[ref]
             if ref in self._books:
                 self.ledger.book(*self._books.pop(ref), "delivered")
             self._wanted = wanted
@@ -352,7 +347,6 @@ class RolloutService:
             self.ledger.book(*book, LEARNER_RESTART)
         self._books.clear()
         self._submits.clear()
-        self._submit_steps.clear()
         self._stale = set(self._collects)
         self.learner = learner
         self._weights_ref = learner.weights.remote()
