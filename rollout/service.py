@@ -61,7 +61,7 @@ class LearnerDied(RuntimeError):
     their Unity instances and weights meanwhile."""
 
 
-def _last_line(error: Exception) -> str:
+def last_line(error: Exception) -> str:
     text = str(error).strip()
     return text.splitlines()[-1] if text else type(error).__name__
 
@@ -172,7 +172,7 @@ class RolloutService:
             try:
                 self.ledger.ended(index, SHUTDOWN, ray.get(call, timeout=0))
             except Exception as error:  # dead: its launch guard already took the player
-                log.warning("while closing worker %d: %s", index, _last_line(error))
+                log.warning("while closing worker %d: %s", index, last_line(error))
                 dead = isinstance(error, RayActorError)
                 self.ledger.ended(index, WORKER_DEATH if dead else SHUTDOWN)
         self.metrics.dropped_by_reason = self.ledger.dropped_by_reason()
@@ -257,7 +257,7 @@ class RolloutService:
                 self._count_failure(index, error)
                 self._idle.add(index)
                 return 0
-            raise RolloutError(f"worker {index}: {_last_line(cause)}") from None
+            raise RolloutError(f"worker {index}: {last_line(cause)}") from None
         except ActorUnavailableError as error:  # died, and Ray is bringing it back
             now = time.perf_counter()
             if index not in self._restarting:
@@ -267,7 +267,7 @@ class RolloutService:
             elif now - self._restarting[index] > self.config.restart_wait_s:
                 raise RolloutError(
                     f"worker {index} did not come back within {self.config.restart_wait_s:.0f} s "
-                    f"of its restart; last: {_last_line(error)}"
+                    f"of its restart; last: {last_line(error)}"
                 ) from None
             self._retry_at[index] = now + RETRY_PAUSE_S
             return 0
@@ -278,7 +278,7 @@ class RolloutService:
                 self._idle.add(index)  # the weights it was sent died with a learner
                 if died in self._dead_learners:
                     return 0  # one that was replaced already
-                raise LearnerDied(_last_line(error)) from None
+                raise LearnerDied(last_line(error)) from None
             self.ledger.ended(index, WORKER_DEATH)
             self._count_failure(index, error)
             self._idle.add(index)
@@ -300,7 +300,7 @@ class RolloutService:
         if self._failures[index] > self.config.max_worker_restarts:
             raise RolloutError(
                 f"worker {index} failed {self._failures[index]} times in a row; "
-                f"last: {_last_line(error)}"
+                f"last: {last_line(error)}"
             ) from None
         log.warning("worker %d died (%s); Ray restarts it", index, error)
         self._worker_version[index] = 0  # a restarted worker needs the weights again
@@ -321,7 +321,7 @@ class RolloutService:
             answers = ray.get(done)
         except RayActorError as error:
             if lost is None:
-                raise LearnerDied(_last_line(error)) from None
+                raise LearnerDied(last_line(error)) from None
             self._submits += done  # booked as lost below
             done, answers = [], []
         for ref in self._submits if lost else []:

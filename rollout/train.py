@@ -35,7 +35,13 @@ from learners.remote import learner_actor
 from rollout.learner_keeper import LearnerKeeper
 from rollout.local_ray import BackgroundRay, init_local_ray
 from rollout.restarts import RestartPolicy
-from rollout.service import LearnerDied, RolloutError, RolloutService, ServiceConfig
+from rollout.service import (
+    LearnerDied,
+    RolloutError,
+    RolloutService,
+    ServiceConfig,
+    last_line,
+)
 from rollout.summaries import Summaries, next_multiple
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
 
@@ -323,8 +329,7 @@ def _run(
 
 def _cause(error: Exception) -> str:
     """Ray's last line without its paragraph of generic advice."""
-    text = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
-    return text.split(" Some common causes")[0]
+    return last_line(error).split(" Some common causes")[0]
 
 
 def _first_steps(service: RolloutService) -> list[float]:
