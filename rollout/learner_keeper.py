@@ -30,16 +30,15 @@ class LearnerKeeper:
         self._start = start  # a new learner actor, as the run first made it
         self._run_dir = run_dir
         self.max_restarts = max_restarts
-        self.restarts = 0
 
     def restore(self, service: RolloutService, cause: str) -> Any:
         """A new learner from the newest checkpoint (or from the start, before the first
         one), its version numbered past every version the dead one published, so that each
         worker takes the restored weights with its next collect."""
-        self.restarts += 1
-        if self.restarts > self.max_restarts:
+        restart = service.metrics.learner_restarts + 1  # the service counts them
+        if restart > self.max_restarts:
             raise RolloutError(
-                f"the learner died {self.restarts} times (--max-learner-restarts "
+                f"the learner died {restart} times (--max-learner-restarts "
                 f"{self.max_restarts}); last: {cause}"
             )
         with contextlib.suppress(Exception):
@@ -61,7 +60,7 @@ class LearnerKeeper:
             cause,
             source.name if source else "the start",
             int(state["step"]),
-            self.restarts,
+            restart,
             self.max_restarts,
         )
         return learner
