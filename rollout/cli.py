@@ -108,6 +108,9 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
         restarts=restarts,
         timeout_wait=args.timeout_wait,
         max_learner_restarts=args.max_learner_restarts,
+        collect_ahead=args.collect_ahead,
+        max_workers=args.max_workers,
+        learner_cpus=args.learner_cpus,
     )
     try:
         result = train(options, starting)
@@ -137,6 +140,15 @@ def _loopback_only_ray() -> None:
     if "ray" in sys.modules:
         raise RuntimeError("_loopback_only_ray() must run before ray is imported")
     os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+
+
+def _workers(value: str) -> int | str:
+    if value == "auto":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a number or auto, not {value!r}") from None
 
 
 def _cmd_collect(args: argparse.Namespace) -> int:
@@ -230,7 +242,13 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument(
         "--env", default="unitysim:3DBall", help="unitysim:<Env>, a build path, or 'editor'"
     )
-    train.add_argument("--workers", type=int, default=2, help="Ray workers, one Unity each")
+    train.add_argument(
+        "--workers",
+        type=_workers,
+        default=2,
+        help="Ray workers, one Unity each; auto: one per CPU of the cluster left after the "
+        "learner's one, following the cluster as nodes join and leave",
+    )
     train.add_argument(
         "--config", help="ML-Agents trainer config YAML (default: config/<Env>.yaml if present)"
     )
@@ -262,6 +280,27 @@ def build_parser() -> argparse.ArgumentParser:
         default=3,
         help="times the learner may die (OOM, GPU error, killed) and come back from the "
         "run's last checkpoint before the run stops",
+    )
+    train.add_argument(
+        "--max-workers",
+        type=int,
+        help="with --workers auto: at most this many, and asks the cluster's autoscaler for "
+        "room for them (KubeRay: nodes up to the worker group's maxReplicas)",
+    )
+    train.add_argument(
+        "--learner-cpus",
+        type=float,
+        default=1.0,
+        help="with --workers auto: the cluster's CPUs no worker counts on, left to the "
+        "learner (0 where it runs on a head without CPUs for Ray, as on KubeRay)",
+    )
+    train.add_argument(
+        "--collect-ahead",
+        type=int,
+        default=0,
+        help="on-policy (PPO): steps workers may collect past what the learner's next update "
+        "needs, acted by the weights that update replaces; keeps many workers busy through "
+        "updates (0: they wait for the new weights, as mlagents-learn's environments do)",
     )
     defaults = RestartPolicy()
     train.add_argument(

@@ -15,7 +15,8 @@ Demand: ``submit`` also answers how many more steps the learner wants before its
 update of an on-policy behavior (PPO), or None. While steps already in flight cover that
 demand, idle workers wait for the new weights instead of acting with old ones: each
 update then trains on data of the policy it improves, as in mlagents-learn's synchronous
-loop. Off-policy and V-trace learners answer None and keep every worker busy.
+loop. ``collect_ahead`` lets workers go on past the demand, through the update, with the
+weights it replaces. Off-policy and V-trace learners answer None and keep every worker busy.
 """
 
 from __future__ import annotations
@@ -25,75 +26,36 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import Any
 
 import ray
-from ray.exceptions import ActorUnavailableError, RayActorError, RayTaskError
+from ray.exceptions import ObjectLostError, RayActorError, RayError
 
-from rollout import keys
 from rollout.collector import ActorFactory
-from rollout.ledger import (
-    LEARNER_RESTART,
-    SHUTDOWN,
-    WORKER_DEATH,
-    Ledger,
-    steps_of,
-)
-from rollout.ports import PortRange
+from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, steps_of
+from rollout.membership import Membership
+from rollout.service_config import LearnerDied, RolloutError, ServiceConfig, last_line
 from rollout.service_metrics import ServiceMetrics, WorkerReports
-from rollout.unity import UnityConfig
-from rollout.worker import RolloutWorker, WeightsLost
+from rollout.supervision import WorkerSupervision
+from rollout.worker import RolloutWorker
 
 log = logging.getLogger(__name__)
+__all__ = ["LearnerDied", "RolloutError", "RolloutService", "ServiceConfig", "last_line"]
 
 
-RETRY_PAUSE_S = 0.5  # between collects sent to a worker that Ray is restarting
 REPORT_WAIT_S = 2.0  # at the end of ``run``: for metrics of workers between collects
 
 
-class RolloutError(RuntimeError):
-    """Collection cannot go on (a worker keeps failing); the message names the cause."""
-
-
-class LearnerDied(RuntimeError):
-    """The learner actor is gone (OOM, a GPU error, SIGKILL). The driver brings a new one
-    back from the last checkpoint and hands it to ``replace_learner``; the workers keep
-    their Unity instances and weights meanwhile."""
-
-
-def last_line(error: Exception) -> str:
-    text = str(error).strip()
-    return text.splitlines()[-1] if text else type(error).__name__
-
-
-@dataclass(frozen=True)
-class ServiceConfig:
-    unity: UnityConfig
-    num_workers: int = 2
-    horizon: int = 64  # steps after which a row is cut (ML-Agents' time_horizon)
-    min_steps: int = 512  # steps of finished rows a collect call waits for (no demand)
-    max_collect_s: float = 0.5  # ... or this long, so data and metrics keep flowing
-    collects_per_worker: int = 1
-    learner_in_flight: int = 2
-    worker_cpus: float = 1.0
-    # Wait for the learner's weights before the first collect (a resumed learner). A fresh
-    # learner holds the factory's initial weights, which each worker builds for itself:
-    # collection then starts while the learner's process is still starting.
-    await_learner_weights: bool = True
-    max_worker_restarts: int = 3
-    restart_wait_s: float = 120.0  # how long a worker may take to come back after a death
-    port_range: PortRange | None = None
-    registry_dir: str | None = None
-
-
-class RolloutService:
+class RolloutService(WorkerSupervision):
     def __init__(
         self,
         config: ServiceConfig,
         actor_factory: ActorFactory,
         learner: ray.actor.ActorHandle,
+        worker_class: Any = RolloutWorker,  # a Ray actor class with RolloutWorker's calls
     ) -> None:
         self.config = config
+        self.worker_class = worker_class
         self.actor_factory = actor_factory
         self.learner = learner
         self.workers: list[ray.actor.ActorHandle] = []
@@ -115,14 +77,24 @@ class RolloutService:
         self._stale: set[ray.ObjectRef] = set()  # collects acted by a dead learner's weights
         self._dead_learners: set[str] = set()  # actor ids of learners replaced
         self._started = 0.0
+        self.membership = (
+            Membership(
+                config.worker_cpus,
+                config.learner_cpus,
+                config.max_workers,
+                max_barren=config.max_worker_restarts,
+            )
+            if config.elastic
+            else None
+        )
 
     # --- lifecycle ----------------------------------------------------------------------
 
     def _make_worker(self, index: int) -> ray.actor.ActorHandle:
         config = self.config
-        return RolloutWorker.options(
+        return self.worker_class.options(
             num_cpus=config.worker_cpus,
-            max_restarts=config.max_worker_restarts,
+            max_restarts=0 if config.elastic else config.max_worker_restarts,
             name=None,
         ).remote(
             index,
@@ -137,6 +109,8 @@ class RolloutService:
         self._started = time.perf_counter()
         # Workers first: their processes and Unity players start while the learner's does.
         self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
+        if self.membership is not None:
+            self.membership.started = len(self.workers)
         first = self.learner.submit.remote([])  # (version, demand), as every submit answers
         if self.config.await_learner_weights:
             self._weights_ref = self.learner.weights.remote()
@@ -156,9 +130,17 @@ class RolloutService:
                 self._issue(index)
         self._pump()
 
+    def live(self) -> list[int]:
+        """Indices of the workers not retired (elastic: those that left are)."""
+        retired = self.membership.retired if self.membership else set()
+        return [i for i in range(len(self.workers)) if i not in retired]
+
     def stop(self) -> None:
         """Close every worker's Unity instance, then end the actors."""
-        closing = [w.close.remote() for w in self.workers]
+        live = self.live()
+        if self.membership is not None:  # a joiner may wait for room that never comes
+            live = [i for i in live if i in self.membership.delivered]
+        closing = [self.workers[i].close.remote() for i in live]
         ray.wait(closing, num_returns=len(closing), timeout=60)
         self._drain_submits(block=False, timeout=10.0, lost=SHUTDOWN)
         finished, _ = ray.wait(list(self._collects), num_returns=len(self._collects), timeout=0)
@@ -168,7 +150,7 @@ class RolloutService:
                 index = self._collects[ref][0]
                 self.ledger.arrived(index, collected)
                 self.ledger.book(index, collected.incarnation, steps_of(collected), SHUTDOWN)
-        for index, call in enumerate(closing):
+        for index, call in zip(live, closing, strict=True):
             try:
                 self.ledger.ended(index, SHUTDOWN, ray.get(call, timeout=0))
             except Exception as error:  # dead: its launch guard already took the player
@@ -215,16 +197,19 @@ class RolloutService:
             return
         coming = sum(steps for _, steps in self._collects.values())
         coming += sum(sum(steps.values()) for _, _, steps in self._books.values())
-        missing = self._wanted - coming
+        missing = self._wanted + self.config.collect_ahead - coming
         if missing <= 0:
             return  # in flight already fills the next update: wait for its weights
-        share = math.ceil(missing / len(idle))
+        # at least a row's worth each: rows arrive whole, so a smaller ask only adds round trips
+        share = max(math.ceil(missing / len(idle)), self.config.horizon)
         for index in idle:
             self._issue(index, share)
         self._idle.difference_update(idle)
 
     def step(self, timeout: float = 60.0) -> int:
         """Route one finished collect to the learner; returns the segments routed."""
+        if self.membership is not None:
+            self._grow()
         self._drain_submits(block=len(self._submits) >= self.config.learner_in_flight)
         now = time.perf_counter()
         for index in [i for i, at in self._retry_at.items() if at <= now]:
@@ -246,43 +231,15 @@ class RolloutService:
         index, _ = self._collects.pop(ref)
         try:
             segments = ray.get(ref)
-            self.ledger.arrived(index, segments)
-            if ref in self._stale:  # weights the restored learner never had: drop
-                self._stale.discard(ref)
-                self.ledger.book(index, segments.incarnation, steps_of(segments), LEARNER_RESTART)
-                segments = []
-        except RayTaskError as error:  # collect raised: e.g. Unity's restart budget is spent
-            cause = getattr(error, "cause", None) or error
-            if isinstance(cause, WeightsLost):  # restarted while idle: resend the weights
-                self._count_failure(index, error)
-                self._idle.add(index)
-                return 0
-            raise RolloutError(f"worker {index}: {last_line(cause)}") from None
-        except ActorUnavailableError as error:  # died, and Ray is bringing it back
-            now = time.perf_counter()
-            if index not in self._restarting:
-                self.ledger.ended(index, WORKER_DEATH)
-                self._count_failure(index, error)
-                self._restarting[index] = now
-            elif now - self._restarting[index] > self.config.restart_wait_s:
-                raise RolloutError(
-                    f"worker {index} did not come back within {self.config.restart_wait_s:.0f} s "
-                    f"of its restart; last: {last_line(error)}"
-                ) from None
-            self._retry_at[index] = now + RETRY_PAUSE_S
-            return 0
-        except RayActorError as error:
+        except RayError as error:
+            return self._collect_failed(index, ref, error)
+        self.ledger.arrived(index, segments)
+        if ref in self._stale:  # weights the restored learner never had: drop
             self._stale.discard(ref)
-            died = getattr(error, "actor_id", None)
-            if died == self.learner._actor_id.hex() or died in self._dead_learners:
-                self._idle.add(index)  # the weights it was sent died with a learner
-                if died in self._dead_learners:
-                    return 0  # one that was replaced already
-                raise LearnerDied(last_line(error)) from None
-            self.ledger.ended(index, WORKER_DEATH)
-            self._count_failure(index, error)
-            self._idle.add(index)
-            return 0
+            self.ledger.book(index, segments.incarnation, steps_of(segments), LEARNER_RESTART)
+            segments = []
+        if self.membership is not None:
+            self.membership.delivered_by(index)
         self._failures[index] = 0
         self._restarting.pop(index, None)
         self._idle.add(index)
@@ -290,20 +247,8 @@ class RolloutService:
             submit = self.learner.submit.remote(ref)
             self._submits.append(submit)
             self._books[submit] = (index, segments.incarnation, steps_of(segments))
-            self._observe(segments)
+            self.metrics.observe(self._version, segments)
         return len(segments)
-
-    def _count_failure(self, index: int, error: Exception) -> None:
-        """A worker died: count it, end the run if it keeps dying, else let Ray restart it."""
-        self.metrics.worker_restarts += 1
-        self._failures[index] += 1
-        if self._failures[index] > self.config.max_worker_restarts:
-            raise RolloutError(
-                f"worker {index} failed {self._failures[index]} times in a row; "
-                f"last: {last_line(error)}"
-            ) from None
-        log.warning("worker %d died (%s); Ray restarts it", index, error)
-        self._worker_version[index] = 0  # a restarted worker needs the weights again
 
     def _drain_submits(
         self, block: bool, timeout: float | None = None, lost: str | None = None
@@ -324,6 +269,8 @@ class RolloutService:
                 raise LearnerDied(last_line(error)) from None
             self._submits += done  # booked as lost below
             done, answers = [], []
+        except ObjectLostError:  # a collect's data died with its worker's node on the way
+            done, answers = self._answers_left(done)
         for ref in self._submits if lost else []:
             if ref in self._books:
                 self.ledger.book(*self._books.pop(ref), lost)
@@ -334,6 +281,18 @@ class RolloutService:
             if version > self._version:
                 self._version = version
                 self._weights_ref = self.learner.weights.remote()
+
+    def _answers_left(self, done: list[ray.ObjectRef]) -> tuple[list, list]:
+        """The submissions that answered, the rest booked as lost with their worker."""
+        kept, answers = [], []
+        for ref in done:
+            try:
+                answers.append(ray.get(ref))
+                kept.append(ref)
+            except ObjectLostError:
+                if ref in self._books:
+                    self.ledger.book(*self._books.pop(ref), WORKER_DEATH)
+        return kept, answers
 
     def replace_learner(self, learner: ray.actor.ActorHandle) -> None:
         """Route to a learner restored after the last one died. What was in flight to the
@@ -357,15 +316,6 @@ class RolloutService:
     def version(self) -> int:
         """The newest weights version the service has seen published."""
         return self._version
-
-    def _observe(self, segments: list) -> None:
-        for segment in segments:
-            self.metrics.segments += 1
-            lag = self._version - segment.data[keys.POLICY_VERSION]
-            if lag.size:
-                self.metrics.policy_lag_max = max(self.metrics.policy_lag_max, int(lag.max()))
-                self.metrics.policy_lag_sum += int(lag.sum())
-                self.metrics.policy_lag_count += int(lag.size)
 
     def run(
         self,
@@ -395,7 +345,9 @@ class RolloutService:
     def refresh_metrics(self, wait_s: float = 0.0) -> ServiceMetrics:
         """Aggregate each worker's newest metrics (``WorkerReports``: never blocks on a
         busy or hung worker). ``wait_s``: how long to wait for the calls in flight."""
-        self.metrics.take(self._reports.poll(self.workers, wait_s))
+        retired = self.membership.retired if self.membership else set()
+        workers = [None if i in retired else w for i, w in enumerate(self.workers)]
+        self.metrics.take(self._reports.poll(workers, wait_s))
         self.metrics.dropped_by_reason = self.ledger.dropped_by_reason()
         self.metrics.seconds = time.perf_counter() - self._started
         return self.metrics

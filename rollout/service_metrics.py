@@ -11,6 +11,7 @@ from typing import Any
 import ray
 from ray.exceptions import RayActorError
 
+from rollout import keys
 from rollout.collector import CollectorMetrics
 from rollout.ledger import SHUTDOWN
 
@@ -38,6 +39,16 @@ class ServiceMetrics:
         self.agent_steps = sum(w.agent_steps for w in workers)
         self.unity_restarts = sum(w.restarts for w in workers)
         self.dropped_steps = sum(w.dropped_steps for w in workers)
+
+    def observe(self, version: int, segments: list) -> None:
+        """Segments routed while ``version`` is the newest: their count and policy lag."""
+        for segment in segments:
+            self.segments += 1
+            lag = version - segment.data[keys.POLICY_VERSION]
+            if lag.size:
+                self.policy_lag_max = max(self.policy_lag_max, int(lag.max()))
+                self.policy_lag_sum += int(lag.sum())
+                self.policy_lag_count += int(lag.size)
 
     def faults(self) -> dict[str, int]:
         """Every fault so far and the steps faults cost (live table, summary.json)."""
@@ -88,7 +99,7 @@ class WorkerReports:
 
     def poll(self, workers: list[Any], wait_s: float) -> list[CollectorMetrics]:
         for index, worker in enumerate(workers):
-            if index not in self.calls:
+            if worker is not None and index not in self.calls:
                 self.calls[index] = worker.metrics.remote()
         calls = list(self.calls.values())
         answered, _ = ray.wait(calls, num_returns=len(calls), timeout=wait_s)

@@ -10,12 +10,20 @@ workers and measure policy lag.
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import time
+import uuid
 from collections import Counter
 
+import numpy as np
+
 from rollout import keys
-from rollout.collector import Weights
+from rollout.collector import ActorFactory, Collector, CollectorMetrics, Weights
+from rollout.ledger import Collected, Counts
+from rollout.ports import PortAllocator, PortRange
 from rollout.segments import Segment
+from rollout.unity import UnityConfig
 
 
 class CountingLearner:
@@ -64,3 +72,70 @@ class CountingLearner:
             "bytes": self.bytes,
             "versions_seen": dict(self.versions_seen),
         }
+
+
+class SyntheticWorker:
+    """A rollout worker without Unity, for the ceilings of the central parts: it records a
+    few real collects at start (one Unity instance, then closed) and answers every collect
+    at once with one of them, under a new source number and the version it was sent, so
+    the driver and the learner see a stream as fast as they can take it.
+
+    Same constructor and calls as ``rollout.worker.RolloutWorker`` (``RolloutService``'s
+    ``worker_class``); as a Ray actor: ``ray.remote(SyntheticWorker)``."""
+
+    RECORDED = 4  # collects recorded at start, replayed in turn
+
+    def __init__(
+        self,
+        index: int,
+        unity: UnityConfig,
+        actor_factory: ActorFactory,
+        horizon: int,
+        port_range: PortRange | None = None,
+        registry_dir: str | None = None,
+    ) -> None:
+        collector = Collector(
+            unity, actor_factory, horizon, index, PortAllocator(port_range, registry_dir)
+        )
+        try:
+            self.recorded = [collector.collect(512) for _ in range(self.RECORDED)]
+        finally:
+            collector.close()
+        self.metrics_ = CollectorMetrics(incarnation=uuid.uuid4().hex)
+        self.counts: dict[str, Counts] = {}
+        self.collects = 0
+
+    def collect(
+        self,
+        version: int,
+        published: tuple[int, Weights] | None,
+        min_steps: int,
+        max_seconds: float | None = None,
+    ) -> Collected:
+        started = time.perf_counter()
+        if published is not None:
+            self.metrics_.policy_version = published[0]
+        template = self.recorded[self.collects % len(self.recorded)]
+        self.collects += 1
+        segments = []
+        for segment in template:
+            versions = np.full(len(segment), self.metrics_.policy_version, dtype=np.int64)
+            data = {**segment.data, keys.POLICY_VERSION: versions}
+            source = (self.metrics_.incarnation, self.collects)
+            segments.append(dataclasses.replace(segment, data=data, source=source))
+            steps = len(segment)
+            old = self.counts.get(segment.behavior, Counts())
+            self.counts[segment.behavior] = Counts(old.produced + steps, old.emitted + steps)
+            self.metrics_.agent_steps += steps
+        self.metrics_.env_steps += 1
+        self.metrics_.seconds += time.perf_counter() - started
+        return Collected(segments, self.metrics_.incarnation, dict(self.counts))
+
+    def metrics(self) -> CollectorMetrics:
+        return self.metrics_
+
+    def identity(self) -> dict[str, int | None]:
+        return {"pid": os.getpid(), "player_pid": None, "port": None, "restarts": 0}
+
+    def close(self) -> Collected:
+        return Collected([], self.metrics_.incarnation, dict(self.counts))

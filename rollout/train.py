@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import Any, Literal
 
 import psutil
 import ray
@@ -34,6 +34,7 @@ from learners.config import ConfigError, RunConfig, config_for_env, load_config,
 from learners.remote import learner_actor
 from rollout.learner_keeper import LearnerKeeper
 from rollout.local_ray import BackgroundRay, init_local_ray
+from rollout.membership import cluster_slots, request_workers
 from rollout.restarts import RestartPolicy
 from rollout.service import (
     LearnerDied,
@@ -55,7 +56,7 @@ class TrainingError(Exception):
 @dataclass(frozen=True)
 class TrainOptions:
     env: str = "unitysim:3DBall"  # unitysim:<Env>, a path to a build, or "editor"
-    workers: int = 2
+    workers: int | Literal["auto"] = 2  # auto: one per CPU left after the learner's, elastic
     config: str | None = None  # ML-Agents trainer config; default: config/<Env>.yaml
     run_id: str = "run"
     results_dir: str = "results"
@@ -72,6 +73,9 @@ class TrainOptions:
     restarts: RestartPolicy = field(default_factory=RestartPolicy)  # of each Unity instance
     timeout_wait: int = 60  # seconds for Unity to connect or answer (mlagents-learn's)
     max_learner_restarts: int = 3  # learner deaths a run survives (from its last checkpoint)
+    learner_cpus: float = 1.0  # --workers auto: CPUs of the cluster left to the learner
+    max_workers: int | None = None  # --workers auto: at most this many (autoscaler's goal)
+    collect_ahead: int = 0  # on-policy: steps collected past the learner's demand (service)
 
 
 @dataclass(frozen=True)
@@ -115,8 +119,10 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
     build = None if options.env == "editor" else options.env
     if build is None and options.workers != 1:
         raise TrainingError("--env editor: there is one editor (port 5004), so use --workers 1")
-    if options.workers < 1:
-        raise TrainingError(f"--workers: at least 1, got {options.workers}")
+    if options.workers != "auto" and options.workers < 1:
+        raise TrainingError(f"--workers: at least 1, or auto; got {options.workers}")
+    if options.max_workers is not None and (options.workers != "auto" or options.max_workers < 1):
+        raise TrainingError("--max-workers: a number of at least 1, with --workers auto")
     if options.timeout_wait < 1:
         raise TrainingError(f"--timeout-wait: at least 1 (seconds), got {options.timeout_wait}")
     try:
@@ -145,16 +151,27 @@ def build_system(
     learner = learner_actor(config, options.max_steps, seed=options.seed)
     if resume is not None:
         ray.get(learner.load_state_dict.remote(resume))
+    elastic = options.workers == "auto"
+    if elastic and options.max_workers:
+        request_workers(options.max_workers, 1.0, options.learner_cpus)
+    if elastic:
+        workers = min(cluster_slots(1.0, options.learner_cpus), options.max_workers or 10**6)
+    else:
+        workers = int(options.workers)
     horizons = [s.time_horizon for s in config.behaviors.values()] or [config.default.time_horizon]
     asynchronous = any(s.trainer_type == "impala" for s in config.behaviors.values())
     service_config = ServiceConfig(
         unity,
-        num_workers=options.workers,
+        num_workers=workers,
         horizon=min(horizons),
         collects_per_worker=2 if asynchronous else 1,
         learner_in_flight=4 if asynchronous else 2,
-        worker_cpus=1.0 if options.address else min(1.0, options.cpus / options.workers),
+        worker_cpus=1.0 if options.address or elastic else min(1.0, options.cpus / workers),
+        elastic=elastic,
+        max_workers=options.max_workers,
+        learner_cpus=options.learner_cpus,
         await_learner_weights=resume is not None,
+        collect_ahead=options.collect_ahead,
     )
     factory = policy_factory(config, options.seed)
     return RolloutService(service_config, factory, learner), learner
@@ -319,6 +336,7 @@ def _run(
                 "interrupted": received[0] if received else None,
                 "faults": {**service.metrics.faults(), "duplicate_steps": duplicates},
                 "ledger": service.ledger.summary(),
+                "membership": service.membership and service.membership.summary(),
                 "startup": startup,
             },
             indent=2,

@@ -154,6 +154,8 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
         (TrainOptions(config="/nonexistent.yaml"), "/nonexistent.yaml"),
         (TrainOptions(config="/"), "/: cannot read"),  # a directory
         (TrainOptions(timeout_wait=0), "--timeout-wait: at least 1"),
+        (TrainOptions(workers=2, max_workers=4), "--max-workers: a number of at least 1, with"),
+        (TrainOptions(workers="auto", max_workers=0), "--max-workers: a number of at least 1"),
     ],
 )
 def test_bad_options_are_one_line_errors_before_anything_starts(options, message, tmp_path):
@@ -170,6 +172,22 @@ def test_a_results_dir_that_cannot_be_written_is_a_one_line_error(tmp_path):
     options = TrainOptions(env="unitysim:Basic", results_dir=str(blocker / "results"))
     with pytest.raises(TrainingError, match=r"--results-dir: cannot write .*a-file/results/run"):
         train(options)
+
+
+def test_workers_auto_fills_the_cluster(ray_session, tmp_path):
+    """The test session's Ray has 2 CPUs: with none left to the learner, 2 workers."""
+    options = TrainOptions(
+        env="unitysim:Basic",
+        results_dir=str(tmp_path),
+        workers="auto",
+        learner_cpus=0.0,
+        max_steps=1500,
+        progress=False,
+    )
+    result = train(options)
+    summary = json.loads((result.run_dir / "summary.json").read_text())
+    assert summary["membership"] == {"added": 0, "removed": 0, "live": 2}
+    assert set(summary["ledger"]["workers"]) == {"0", "1"} and summary["ledger"]["balanced"]
 
 
 def test_summaries_follow_each_behaviors_summary_freq(tmp_path):

@@ -174,18 +174,30 @@ def start_node(
     return node
 
 
-def cluster_processes(tag: str) -> list[psutil.Process]:
-    """Live (non-zombie) processes carrying the cluster's tag."""
+def cluster_processes(tag: str, variable: str = CLUSTER_TAG) -> list[psutil.Process]:
+    """Live (non-zombie) processes whose environment has ``variable`` = ``tag`` (the
+    cluster's tag by default; a node's own, given in its ``extra_env``, for one node)."""
     found = []
     for process in psutil.process_iter(["pid", "status"]):
         if process.info["status"] == psutil.STATUS_ZOMBIE or process.pid == os.getpid():
             continue
         try:
-            if process.environ().get(CLUSTER_TAG) == tag:
+            if process.environ().get(variable) == tag:
                 found.append(process)
         except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
             continue
     return found
+
+
+def stop_node(node: RayNode, grace_s: float = 10.0) -> None:
+    """Stop one node of a live cluster as ``ray stop`` on its machine would (SIGTERM, then
+    SIGKILL after ``grace_s``), leaving the others running."""
+    _signal_group(node, signal.SIGTERM)
+    try:
+        node.process.wait(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        _signal_group(node, signal.SIGKILL)
+        node.process.wait(timeout=10)
 
 
 def _signal_group(node: RayNode, signum: int) -> None:

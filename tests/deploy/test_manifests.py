@@ -85,6 +85,11 @@ def test_kuberay_cluster_spec(name, spec):
         memory_gib = int(limits["memory"].removesuffix("Gi"))
         assert memory_gib >= 2 * cpus and limits["memory"] == requests["memory"]
         assert group["minReplicas"] <= group["replicas"] <= group["maxReplicas"]
+        assert group["minReplicas"] < group["maxReplicas"]  # room for the autoscaler
+    assert spec["enableInTreeAutoscaling"] is True
+    autoscaler = spec["autoscalerOptions"]
+    assert autoscaler["upscalingMode"] == "Default" and autoscaler["idleTimeoutSeconds"] > 0
+    assert_token_env({"name": "autoscaler", **autoscaler})  # it talks to the GCS too
 
 
 def test_rayjob_embeds_the_raycluster_spec_unchanged():
@@ -101,11 +106,13 @@ def test_rayjob_entrypoint_runtime_env_and_submitter():
     args = parse_cli(spec["entrypoint"])
     assert args.command == "train" and args.address == "auto"
     assert args.results_dir == "/workspace/results"  # the head's results volume
-    worker_cpus = sum(
-        int(g["rayStartParams"]["num-cpus"]) * g["replicas"]
+    # elastic, asking the autoscaler for every worker CPU its groups can reach; the learner
+    # runs on the head, which has no CPUs for Ray
+    most = sum(
+        int(g["rayStartParams"]["num-cpus"]) * g["maxReplicas"]
         for g in spec["rayClusterSpec"]["workerGroupSpecs"]
     )
-    assert args.workers == worker_cpus
+    assert args.workers == "auto" and args.max_workers == most and args.learner_cpus == 0
     runtime_env = yaml.safe_load(spec["runtimeEnvYAML"])
     assert set(runtime_env) == {"env_vars"}  # no pip / working_dir: the image holds the pins
     assert all(isinstance(v, str) for v in runtime_env["env_vars"].values())

@@ -18,7 +18,7 @@ from rollout.ports import PortAllocator, PortRange
 from rollout.restarts import RestartPolicy
 from rollout.service import REPORT_WAIT_S, RolloutError, RolloutService, ServiceConfig
 from rollout.specs import step_spec
-from rollout.testing import CountingLearner
+from rollout.testing import CountingLearner, SyntheticWorker
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker, WeightsLost
 from tests.helpers import trajectories, wait_gone
@@ -213,6 +213,25 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
     assert max(acted.values()) <= bound, (acted, bound)
     # On average only the last exchange of each collect overshoots its share.
     assert sum(acted.values()) / len(acted) <= demand + workers * 12 * horizon, acted
+
+
+def test_synthetic_workers_replay_real_collects_with_no_unity_left(ray_session, registry):
+    """benchmarks/bench_central.py's source: recorded 3DBall collects, renumbered and
+    stamped with the version each worker was sent, routed and booked like real ones."""
+    learner = ray_session.remote(CountingLearner).remote(bump_every=2)
+    config = service_config(UnityConfig("unitysim:3DBall"), registry)
+    synthetic = ray_session.remote(SyntheticWorker)
+    with RolloutService(config, actor_factory, learner, synthetic) as service:
+        metrics = service.run(until=lambda m: m.segments >= 40, seconds=120)
+        identities = ray_session.get([w.identity.remote() for w in service.workers])
+        assert all(i["player_pid"] is None for i in identities)
+        assert not any(psutil.Process(i["pid"]).children() for i in identities)
+    summary = ray_session.get(learner.summary.remote())
+    ray_session.kill(learner)
+    assert metrics.segments >= 40
+    assert summary["steps"]["3DBall?team=0"] == service.ledger.summary()["delivered"] > 40 * 512
+    assert service.ledger.summary()["balanced"]
+    assert max(summary["versions_seen"]) >= summary["version"] - 2 > 10  # stamped as sent
 
 
 def test_a_killed_worker_is_one_failure_however_long_ray_takes_to_restart_it(ray_session, registry):

@@ -1,0 +1,135 @@
+"""What the rollout service does when a worker's collect fails, and as the cluster changes:
+
+- a worker Ray is restarting (``--workers N``): retried until it is back, counted once;
+- a worker that died: with ``--workers N`` Ray restarts it in place, and one that keeps
+  dying ends the run; with ``--workers auto`` (elastic) it is retired, having left with its
+  node or alone, and the cluster's room decides its successor (``rollout/membership.py``);
+- the learner died under the collect (its weights were the collect's argument);
+- a cause that no restart cures (Unity's restart budget spent): the run ends, naming it.
+
+A mixin of ``RolloutService``: the state it reads and writes is the service's.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING, Any
+
+import ray
+from ray.exceptions import ActorUnavailableError, ObjectLostError, RayActorError, RayTaskError
+
+from rollout.ledger import WORKER_DEATH
+from rollout.service_config import LearnerDied, RolloutError, last_line
+from rollout.worker import WeightsLost
+
+if TYPE_CHECKING:
+    from rollout.ledger import Ledger
+    from rollout.membership import Membership
+    from rollout.service_config import ServiceConfig
+    from rollout.service_metrics import ServiceMetrics
+
+log = logging.getLogger("rollout.service")
+
+RETRY_PAUSE_S = 0.5  # between collects sent to a worker that Ray is restarting
+
+
+class WorkerSupervision:
+    config: ServiceConfig
+    learner: Any
+    workers: list[Any]
+    ledger: Ledger
+    metrics: ServiceMetrics
+    membership: Membership | None
+    _idle: set[int]
+    _failures: list[int]
+    _worker_version: list[int]
+    _restarting: dict[int, float]
+    _retry_at: dict[int, float]
+    _stale: set[Any]
+    _dead_learners: set[str]
+
+    def _make_worker(self, index: int) -> Any: ...
+
+    def live(self) -> list[int]: ...
+
+    def _collect_failed(self, index: int, ref: Any, error: Exception) -> int:
+        """A collect raised ``error`` instead of returning segments; returns 0 (routed)."""
+        if isinstance(error, RayTaskError):  # collect raised: e.g. Unity's budget is spent
+            cause = getattr(error, "cause", None) or error
+            if isinstance(cause, WeightsLost):  # restarted while idle: resend the weights
+                self._count_failure(index, error)
+                self._idle.add(index)
+                return 0
+            raise RolloutError(f"worker {index}: {last_line(cause)}") from None
+        if isinstance(error, ActorUnavailableError):  # died, and Ray is bringing it back
+            now = time.perf_counter()
+            if index not in self._restarting:
+                self.ledger.ended(index, WORKER_DEATH)
+                self._count_failure(index, error)
+                self._restarting[index] = now
+            elif now - self._restarting[index] > self.config.restart_wait_s:
+                raise RolloutError(
+                    f"worker {index} did not come back within {self.config.restart_wait_s:.0f} s "
+                    f"of its restart; last: {last_line(error)}"
+                ) from None
+            self._retry_at[index] = now + RETRY_PAUSE_S
+            return 0
+        if not isinstance(error, RayActorError | ObjectLostError):  # lost: with its node
+            raise error
+        self._stale.discard(ref)
+        died = getattr(error, "actor_id", None)
+        if died == self.learner._actor_id.hex() or died in self._dead_learners:
+            self._idle.add(index)  # the weights it was sent died with a learner
+            if died in self._dead_learners:
+                return 0  # one that was replaced already
+            raise LearnerDied(last_line(error)) from None
+        if self.membership is not None:
+            self._retire(index, error)
+            return 0
+        self.ledger.ended(index, WORKER_DEATH)
+        self._count_failure(index, error)
+        self._idle.add(index)
+        return 0
+
+    def _grow(self) -> None:
+        """Elastic: start a worker for each slot the cluster gained (first weights with
+        its first collect, as after a restart)."""
+        assert self.membership is not None
+        for _ in range(self.membership.missing(self.live())):
+            index = len(self.workers)
+            self.workers.append(self._make_worker(index))
+            self._worker_version.append(0)
+            self._failures.append(0)
+            self._idle.add(index)
+            self.membership.added += 1
+            log.info("worker %d joins: %d live", index, len(self.live()))
+
+    def _retire(self, index: int, error: Exception) -> None:
+        """Elastic: a worker died (with its node, or alone): its rows in progress are
+        dropped, and the cluster's room, not a restart in place, decides its successor."""
+        assert self.membership is not None
+        if index in self.membership.retired:
+            return
+        self.ledger.ended(index, WORKER_DEATH)
+        self._idle.discard(index)
+        self._retry_at.pop(index, None)
+        ray.kill(self.workers[index], no_restart=True)
+        if not self.membership.retire(index):
+            raise RolloutError(
+                f"{self.membership.barren} workers in a row died before their first collect; "
+                f"last: {last_line(error)}"
+            )
+        log.warning("worker %d left (%s): %d live", index, last_line(error), len(self.live()))
+
+    def _count_failure(self, index: int, error: Exception) -> None:
+        """A worker died: count it, end the run if it keeps dying, else let Ray restart it."""
+        self.metrics.worker_restarts += 1
+        self._failures[index] += 1
+        if self._failures[index] > self.config.max_worker_restarts:
+            raise RolloutError(
+                f"worker {index} failed {self._failures[index]} times in a row; "
+                f"last: {last_line(error)}"
+            ) from None
+        log.warning("worker %d died (%s); Ray restarts it", index, error)
+        self._worker_version[index] = 0  # a restarted worker needs the weights again

@@ -1,0 +1,71 @@
+"""How the service sizes collects against an on-policy learner's demand (``_pump``), with
+stand-in worker handles that record what they were asked: no Ray, no Unity."""
+
+from __future__ import annotations
+
+import pytest
+
+from learners.acting import actor_factory
+from rollout.service import RolloutService, ServiceConfig
+from rollout.unity import UnityConfig
+
+
+class _Collect:
+    def __init__(self, asked: list[int]) -> None:
+        self.asked = asked
+
+    def remote(self, version: int, weights: object, steps: int, max_seconds: float) -> object:
+        self.asked.append(steps)
+        return object()  # stands in for the call's ObjectRef
+
+
+class _Worker:
+    def __init__(self) -> None:
+        self.asked: list[int] = []
+        self.collect = _Collect(self.asked)
+
+
+def pump(
+    wanted: int | None,
+    ahead: int = 0,
+    idle: int = 4,
+    in_flight: int = 0,
+    horizon: int = 64,
+) -> list[list[int]]:
+    """What each of 4 workers is asked, ``idle`` of them idle, one collect of ``in_flight``
+    steps already under way."""
+    config = ServiceConfig(UnityConfig(None), num_workers=4, horizon=horizon, collect_ahead=ahead)
+    service = RolloutService(config, actor_factory, learner=None)
+    workers = [_Worker() for _ in range(4)]
+    service.workers = workers
+    service._worker_version = [0] * 4
+    service._idle = set(range(idle))
+    service._wanted = wanted
+    if in_flight:
+        service._collects[object()] = (3, in_flight)
+    service._pump()
+    return [w.asked for w in workers]
+
+
+def test_the_demand_is_shared_among_idle_workers():
+    assert pump(1000) == [[250]] * 4
+
+
+def test_without_demand_every_idle_worker_collects_its_usual_size():
+    assert pump(None, idle=2) == [[512], [512], [], []]
+
+
+def test_steps_under_way_count_against_the_demand():
+    assert pump(1000, idle=3, in_flight=1000) == [[], [], [], []]  # wait for the weights
+    assert pump(1000, idle=3, in_flight=400) == [[200], [200], [200], []]
+
+
+def test_collect_ahead_keeps_idle_workers_collecting_past_the_demand():
+    assert pump(1000, ahead=1200, idle=3, in_flight=1000) == [[400], [400], [400], []]
+    assert pump(1000, ahead=1000) == [[500]] * 4
+
+
+@pytest.mark.parametrize("horizon", [16, 64])
+def test_no_worker_is_asked_for_less_than_a_row(horizon):
+    """Rows arrive whole: a smaller ask would return after the same row, one more trip."""
+    assert pump(100, horizon=horizon) == [[max(25, horizon)]] * 4
