@@ -1,7 +1,8 @@
 """The rollout service: starts N workers, routes their segments to the learner, brings
 newer weights back, supervises, aggregates metrics, and stops everything cleanly.
 
-Data flow (all ObjectRefs; the driver never touches segment data)::
+Data flow (ObjectRefs: the learner gets the collect's own ref; the driver reads only its
+step counts and policy versions)::
 
     worker.collect(version, weights)  ->  segments ref  ->  learner.submit(segments)
           ^                                                         |

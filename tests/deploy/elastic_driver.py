@@ -77,11 +77,23 @@ def main(address: str) -> int:
             run_until(service, lambda: membership.removed >= 1)
             before = service.metrics.segments
             run_until(service, lambda: service.metrics.segments >= before + 5)
-            say("shrunk", removed=membership.removed, segments=service.metrics.segments)
+            say(
+                "shrunk",
+                removed=membership.removed,
+                segments=service.metrics.segments,
+                version=service.version,
+            )
             sys.stdin.readline()  # the test starts the second node again
 
             run_until(service, lambda: any(i >= 2 for i in delivering_nodes(service, address)))
-            say("grew", nodes=delivering_nodes(service, address), added=membership.added)
+            joined = max(delivering_nodes(service, address))
+            first = ray.get(service.workers[joined].metrics.remote()).policy_version
+            say(
+                "grew",
+                nodes=delivering_nodes(service, address),
+                added=membership.added,
+                joined_with=first,
+            )
             service.run(seconds=2.0)
             live = [service.workers[i] for i in service.live()]
         summary = ray.get(learner.summary.remote())

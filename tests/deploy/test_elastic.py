@@ -112,6 +112,8 @@ def test_workers_leave_with_a_stopped_node_and_join_with_a_new_one(tmp_path):
             grew = driver.phase("grew")
             on_new_node = set(grew["nodes"].values()) - set(ready["nodes"].values())
             assert len(on_new_node) == 1, (ready, grew)  # it collects on the new node
+            # with the weights published by then, not from scratch
+            assert grew["joined_with"] >= shrunk["version"] > 0, (shrunk, grew)
             assert players(second)
 
             done = driver.phase("done")
