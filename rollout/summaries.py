@@ -15,7 +15,7 @@ each summary is also one line on the console, in mlagents-learn's words.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,9 +81,14 @@ class Summaries:
         summary_freq: Callable[[str], int],
         progress: bool = True,
         console: Console | None = None,
+        start_steps: Mapping[str, int] | None = None,
     ) -> None:
         self.run_dir = run_dir
         self.summary_freq = summary_freq
+        # per behavior, the step the run starts from (a resumed run's checkpoint): the first
+        # summary is due at the first multiple of summary_freq after it, however late the
+        # first look at the learner comes (a short or fast run may be past it by then)
+        self.start_steps = dict(start_steps or {})
         self.writers: dict[str, ScalarWriter] = {}
         self.windows: dict[str, _Window] = {}
         self.console = console or Console()
@@ -144,8 +149,9 @@ class Summaries:
 
     def _window(self, behavior: str, step: int) -> _Window:
         if behavior not in self.windows:
+            start = min(step, self.start_steps.get(behavior, 0))
             self.windows[behavior] = _Window(
-                next_step=next_multiple(step, self.summary_freq(behavior))
+                next_step=next_multiple(start, self.summary_freq(behavior))
             )
         return self.windows[behavior]
 

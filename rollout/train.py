@@ -284,7 +284,12 @@ def _run(
         stop_on_signals() as received,
         service,
         Summaries(
-            run_dir, lambda behavior: config.for_behavior(behavior).summary_freq, options.progress
+            run_dir,
+            lambda behavior: config.for_behavior(behavior).summary_freq,
+            options.progress,
+            start_steps={n: int(b["steps"]) for n, b in resume["behaviors"].items()}
+            if resume
+            else None,
         ) as summaries,
     ):
         while not received:

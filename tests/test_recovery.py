@@ -96,7 +96,7 @@ def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path):
         for line in output.splitlines()
         if "Step: " in line
     ]
-    assert steps_printed and min(steps_printed) > step, steps_printed[:3]
+    assert steps_printed and min(steps_printed) > step, (steps_printed[:3], output[-3000:])
 
 
 def test_resume_if_exists_starts_a_run_that_has_no_checkpoint(tmp_path):

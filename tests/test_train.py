@@ -213,6 +213,23 @@ def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
     assert [s for b, s in written if b == "B?team=0"] == [250, 500]
 
 
+def test_a_run_whose_first_look_comes_late_still_writes_its_first_summary(tmp_path):
+    """A resumed run at step 1,000 seen first at 1,350 (a fast run, a slow first look) is
+    past its first boundary (1,100): that summary is written at once, not skipped."""
+    from learners.learner import LearnerStats
+    from rollout.service_metrics import ServiceMetrics
+    from rollout.summaries import Summaries
+
+    written: list[int] = []
+    start = {"A?team=0": 1000}
+    with Summaries(tmp_path, lambda b: 100, progress=False, start_steps=start) as summaries:
+        summaries._write = lambda behavior, step, *rest: written.append(step)
+        for step in (1350, 1390, 1420):
+            progress = {"steps": {"A?team=0": step}, "version": 0, "stats": LearnerStats()}
+            summaries.observe(ServiceMetrics(), progress, [])
+    assert written == [1350, 1420]
+
+
 def test_engine_settings_reach_the_unity_config(tmp_path):
     from learners.config import parse_config
     from rollout.train import unity_config
