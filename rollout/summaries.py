@@ -166,25 +166,27 @@ class Summaries:
         writer = self.writers.get(behavior)
         if writer is None:
             writer = self.writers[behavior] = ScalarWriter(str(self.run_dir / _safe(behavior)))
+        episodes, return_sum, length_sum = totals or (window.episodes, 0.0, 0)
+        new = episodes - window.episodes
+        line = "No episode was completed since last summary."  # mlagents-learn's words
+        if new > 0:
+            window.last_reward = (return_sum - window.return_sum) / new
+            window.last_length = (length_sum - window.length_sum) / new
+            writer.add_scalar("Environment/Cumulative Reward", window.last_reward, step)
+            writer.add_scalar("Environment/Episode Length", window.last_length, step)
+            writer.add_scalar("Environment/Episodes", new, step)
+            self.first_reward_at = self.first_reward_at or time.time()
+            line = (
+                f"Mean Reward: {window.last_reward:.3f}. Episode Length: {window.last_length:.1f}."
+            )
+        if self.live is None:
+            elapsed = time.perf_counter() - self.started
+            self.console.print(
+                f"{behavior}. Step: {step}. Time Elapsed: {elapsed:.1f} s. {line}",
+                soft_wrap=True,
+                highlight=False,
+            )
         if totals is not None:
-            episodes, return_sum, length_sum = totals
-            new = episodes - window.episodes
-            if new > 0:
-                window.last_reward = (return_sum - window.return_sum) / new
-                window.last_length = (length_sum - window.length_sum) / new
-                writer.add_scalar("Environment/Cumulative Reward", window.last_reward, step)
-                writer.add_scalar("Environment/Episode Length", window.last_length, step)
-                writer.add_scalar("Environment/Episodes", new, step)
-                self.first_reward_at = self.first_reward_at or time.time()
-                if self.live is None:
-                    self.console.print(
-                        f"{behavior}. Step: {step}. "
-                        f"Time Elapsed: {time.perf_counter() - self.started:.1f} s. "
-                        f"Mean Reward: {window.last_reward:.3f}. "
-                        f"Episode Length: {window.last_length:.1f}.",
-                        soft_wrap=True,
-                        highlight=False,
-                    )
             window.episodes, window.return_sum, window.length_sum = totals
         for key, values in window.losses.items():
             writer.add_scalar(key, sum(values) / len(values), step)

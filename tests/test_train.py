@@ -230,6 +230,25 @@ def test_a_run_whose_first_look_comes_late_still_writes_its_first_summary(tmp_pa
     assert written == [1350, 1420]
 
 
+def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
+    """As mlagents-learn: without a TTY every summary prints a line, with the step."""
+    import io
+
+    from rich.console import Console
+
+    from learners.learner import LearnerStats
+    from rollout.service_metrics import ServiceMetrics
+    from rollout.summaries import Summaries
+
+    out = io.StringIO()
+    console = Console(file=out, width=200)
+    with Summaries(tmp_path, lambda b: 100, progress=False, console=console) as summaries:
+        progress = {"steps": {"A?team=0": 150}, "version": 0, "stats": LearnerStats()}
+        summaries.observe(ServiceMetrics(), progress, [])
+    assert "A?team=0. Step: 150. Time Elapsed: " in out.getvalue()
+    assert "No episode was completed since last summary." in out.getvalue()
+
+
 def test_engine_settings_reach_the_unity_config(tmp_path):
     from learners.config import parse_config
     from rollout.train import unity_config
