@@ -32,6 +32,13 @@ def cluster_slots(worker_cpus: float, learner_cpus: float) -> int:
     return max(1, math.floor((cpus - learner_cpus) / worker_cpus + 1e-9))
 
 
+def workers_wanted(worker_cpus: float, learner_cpus: float, max_workers: int | None) -> int:
+    """How many workers an elastic run holds now: the cluster's slots, at most
+    ``max_workers``."""
+    slots = cluster_slots(worker_cpus, learner_cpus)
+    return min(slots, max_workers or slots)
+
+
 @dataclass
 class Membership:
     worker_cpus: float = 1.0
@@ -43,7 +50,6 @@ class Membership:
     delivered: set[int] = field(default_factory=set)  # indices that delivered a collect
     started: int = 0  # workers at the start
     added: int = 0
-    removed: int = 0
     barren: int = 0  # deaths in a row of workers that never delivered
     _next_check: float = 0.0
 
@@ -55,12 +61,16 @@ class Membership:
         if now < self._next_check or not self.delivered.issuperset(live):
             return 0
         self._next_check = now + self.every_s
-        slots = cluster_slots(self.worker_cpus, self.learner_cpus)
-        return max(0, min(slots, self.max_workers or slots) - len(live))
+        wanted = workers_wanted(self.worker_cpus, self.learner_cpus, self.max_workers)
+        return max(0, wanted - len(live))
 
     def summary(self) -> dict[str, int]:
         """For summary.json: workers that joined after the start, that left, and live."""
         return {"added": self.added, "removed": self.removed, "live": self.live}
+
+    @property
+    def removed(self) -> int:
+        return len(self.retired)
 
     @property
     def live(self) -> int:
@@ -73,7 +83,6 @@ class Membership:
     def retire(self, index: int) -> bool:
         """A worker died; False once too many in a row died before delivering anything."""
         self.retired.add(index)
-        self.removed += 1
         if index not in self.delivered:
             self.barren += 1
         return self.barren <= self.max_barren

@@ -346,8 +346,8 @@ class RolloutService(WorkerSupervision):
     def refresh_metrics(self, wait_s: float = 0.0) -> ServiceMetrics:
         """Aggregate each worker's newest metrics (``WorkerReports``: never blocks on a
         busy or hung worker). ``wait_s``: how long to wait for the calls in flight."""
-        retired = self.membership.retired if self.membership else set()
-        workers = [None if i in retired else w for i, w in enumerate(self.workers)]
+        live = set(self.live())
+        workers = [w if i in live else None for i, w in enumerate(self.workers)]
         self.metrics.take(self._reports.poll(workers, wait_s))
         self.metrics.dropped_by_reason = self.ledger.dropped_by_reason()
         self.metrics.seconds = time.perf_counter() - self._started

@@ -34,7 +34,7 @@ from learners.config import ConfigError, RunConfig, config_for_env, load_config,
 from learners.remote import learner_actor
 from rollout.learner_keeper import LearnerKeeper
 from rollout.local_ray import BackgroundRay, init_local_ray
-from rollout.membership import cluster_slots, request_workers
+from rollout.membership import request_workers, workers_wanted
 from rollout.restarts import RestartPolicy
 from rollout.service import (
     LearnerDied,
@@ -155,7 +155,7 @@ def build_system(
     if elastic and options.max_workers:
         request_workers(options.max_workers, 1.0, options.learner_cpus)
     if elastic:
-        workers = min(cluster_slots(1.0, options.learner_cpus), options.max_workers or 10**6)
+        workers = workers_wanted(1.0, options.learner_cpus, options.max_workers)
     else:
         workers = int(options.workers)
     horizons = [s.time_horizon for s in config.behaviors.values()] or [config.default.time_horizon]
