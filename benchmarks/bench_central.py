@@ -17,7 +17,6 @@ agents each one driver and one learner can feed.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import tempfile
@@ -25,7 +24,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import psutil
 import ray
 from machine import machine  # benchmarks/machine.py
@@ -33,11 +31,10 @@ from machine import machine  # benchmarks/machine.py
 from learners.acting import actor_factory, policy_factory
 from learners.config import CONFIG_DIR, load_config
 from learners.remote import learner_actor
-from rollout import keys
 from rollout.collector import Collector
 from rollout.ports import PortAllocator
 from rollout.service import RolloutService, ServiceConfig
-from rollout.testing import CountingLearner, SyntheticWorker
+from rollout.testing import CountingLearner, SyntheticWorker, replayed
 from rollout.unity import UnityConfig
 
 UNITY = UnityConfig("unitysim:3DBall")
@@ -85,12 +82,7 @@ def record(kind: str, collects: int, registry: str) -> list[Any]:
 def renumbered(collected: Any, number: int, version: int) -> list[Any]:
     """A recorded collect as new: its own source number, acted by the learner's newest
     weights (as a worker keeping up would send it; PPO drops steps of older ones)."""
-    segments = []
-    for segment in collected:
-        versions = np.full(len(segment), version, dtype=np.int64)
-        data = {**segment.data, keys.POLICY_VERSION: versions}
-        segments.append(dataclasses.replace(segment, data=data, source=("bench", number)))
-    return segments
+    return [replayed(segment, version, ("bench", number)) for segment in collected]
 
 
 def ingestion_in_process(kind: str, recorded: list[Any], seconds: float) -> dict[str, Any]:

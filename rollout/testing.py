@@ -74,6 +74,14 @@ class CountingLearner:
         }
 
 
+def replayed(segment: Segment, version: int, source: tuple[str, int]) -> Segment:
+    """A recorded segment sent anew: acted by ``version``, from ``source`` (the learner
+    takes each source once, and PPO drops steps of weights too old)."""
+    versions = np.full(len(segment), version, dtype=np.int64)
+    data = {**segment.data, keys.POLICY_VERSION: versions}
+    return dataclasses.replace(segment, data=data, source=source)
+
+
 class SyntheticWorker:
     """A rollout worker without Unity, for the ceilings of the central parts: it records a
     few real collects at start (one Unity instance, then closed) and answers every collect
@@ -118,11 +126,9 @@ class SyntheticWorker:
         template = self.recorded[self.collects % len(self.recorded)]
         self.collects += 1
         segments = []
+        source = (self.metrics_.incarnation, self.collects)
         for segment in template:
-            versions = np.full(len(segment), self.metrics_.policy_version, dtype=np.int64)
-            data = {**segment.data, keys.POLICY_VERSION: versions}
-            source = (self.metrics_.incarnation, self.collects)
-            segments.append(dataclasses.replace(segment, data=data, source=source))
+            segments.append(replayed(segment, self.metrics_.policy_version, source))
             steps = len(segment)
             old = self.counts.get(segment.behavior, Counts())
             self.counts[segment.behavior] = Counts(old.produced + steps, old.emitted + steps)
