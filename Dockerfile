@@ -6,14 +6,24 @@
 #       -> `unity-rollout train` on unitysim 3DBall in local 2-core mode (no build needed)
 #   docker run --rm --shm-size=2g -v /path/to/LinuxBuild:/builds:ro \
 #       -v "$PWD/results:/workspace/results" unity-rollout:0.1.0 train --env /builds/Game.x86_64
+#   docker build --build-arg TORCH=cu130 -t unity-rollout:0.1.0-gpu .
+#       -> the GPU learner's image: `docker run --gpus all ... train --device cuda`
 #
 # Build arguments:
 #   RENDER=1   the render variant: Xvfb and mesa's software GL (~300 MB), for builds with
 #              camera or render-texture observations: `docker run ... IMAGE xvfb-run -a
 #              unity-rollout train ...`. Headless builds (-nographics) need neither.
-#   TORCH=cpu  (default) the build stops with a one-line error when torch's CPU wheel is not
-#              on PIP_EXTRA_INDEX_URL, instead of pip silently taking the CUDA build;
-#              TORCH=any accepts whichever build pip finds.
+#   TORCH      which build of torch (scripts/check-torch-index.py; anything else stops the
+#              build with one line naming these):
+#                cpu    (default) CPU only, from torch's CPU index;
+#                cu126, cu130, cu132   CUDA 12.6 / 13.0 / 13.2 from torch's index of that
+#                       build; the wheels bring their CUDA runtime (nvidia-* packages, several
+#                       GB), so the base stays the same; the host needs only the NVIDIA driver
+#                       and Container Toolkit (deploy/README.md, "GPU learner");
+#                any    whichever build pip finds (the CPU index first), nothing checked.
+#              The build stops with a one-line error when the chosen build's wheel is not on
+#              the index, instead of pip silently taking another build.
+#   PIP_EXTRA_INDEX_URL   torch's index for TORCH, unless set (a mirror of it).
 #   BASE       the Python base image (scripts/image-check.sh passes a local stand-in when
 #              no image registry is reachable).
 #
@@ -42,17 +52,21 @@ COPY unitysim/ unitysim/
 COPY config/ config/
 
 # The README's installer, unchanged: pinned by constraints.txt, mlagents-envs with --no-deps.
-# PIP_EXTRA_INDEX_URL: torch's CPU wheels (2.13.0+cpu satisfies the torch==2.13.0 pin), so
-# the image does not pull several GB of CUDA libraries. EXTRAS= (empty): runtime packages
-# only, no test tools. The import fails the build if the C extension is missing (setup.py
-# would only warn). Then out go torch's C++ test programs, headers (for compiling
+# PIP_EXTRA_INDEX_URL: the index of TORCH's build (2.13.0+cpu or 2.13.0+cu130 satisfies the
+# torch==2.13.0 pin), so the CPU image does not pull several GB of CUDA libraries and the
+# GPU image gets the CUDA build it names. The first two steps only choose the index (no
+# network; tests/deploy/test_dockerfile.py runs them as written). EXTRAS= (empty): runtime
+# packages only, no test tools. The import fails the build if the C extension is missing
+# (setup.py would only warn). Then out go torch's C++ test programs, headers (for compiling
 # extensions) and Ray's Java workers: nothing here imports or runs them.
-ARG PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu
 ARG TORCH=cpu
-RUN if [ "$TORCH" = cpu ]; then python3.11 scripts/check-torch-index.py "$PIP_EXTRA_INDEX_URL"; fi \
+ARG PIP_EXTRA_INDEX_URL=
+RUN PIP_EXTRA_INDEX_URL=$(python3.11 scripts/check-torch-index.py --index-for "$TORCH" "$PIP_EXTRA_INDEX_URL") \
+    && export PIP_EXTRA_INDEX_URL \
+    && python3.11 scripts/check-torch-index.py --torch "$TORCH" "$PIP_EXTRA_INDEX_URL" \
     && PYTHON=python3.11 VENV=/opt/venv EXTRAS='' PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
     && /opt/venv/bin/python -c "import unitysim.envs._ball3d" \
-    && if [ "$TORCH" = cpu ]; then /opt/venv/bin/python scripts/check-torch-index.py --installed; fi \
+    && /opt/venv/bin/python scripts/check-torch-index.py --torch "$TORCH" --installed \
     && site=/opt/venv/lib/python3.11/site-packages \
     && rm -rf "$site/torch/test" "$site/torch/include" "$site/ray/jars" \
     && find "$site/torch/bin" -mindepth 1 -maxdepth 1 ! -name torch_shm_manager -exec rm -rf {} + \
@@ -99,10 +113,15 @@ COPY --from=build /opt/unity-rollout /opt/unity-rollout
 RUN printf '%s\n' 'export VIRTUAL_ENV=/opt/venv' 'export PATH=/opt/venv/bin:$PATH' \
         '[ -w "${HOME:-/}" ] || export HOME=/tmp' > /etc/profile.d/unity-rollout.sh
 
+# NVIDIA_DRIVER_CAPABILITIES: what the NVIDIA Container Toolkit mounts from the host's
+# driver when a GPU is given (docker run --gpus, Kubernetes' nvidia.com/gpu): CUDA (compute)
+# and NVML (utility, how Ray finds the GPU). As in NVIDIA's CUDA images; without a GPU it
+# does nothing, so the CPU image carries it too.
 ENV VIRTUAL_ENV=/opt/venv \
     PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
-    RAY_AUTH_MODE=token
+    RAY_AUTH_MODE=token \
+    NVIDIA_DRIVER_CAPABILITIES=compute,utility
 
 # /builds: mount a Linux Unity build here (read-only is fine), e.g. /builds/Game.x86_64.
 # /workspace/results: every run's TensorBoard events, checkpoints and summary.json.

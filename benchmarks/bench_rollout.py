@@ -3,8 +3,9 @@
 (a) the raw ``UnityEnvironment`` random-action loop; (b) torchrl's ``UnityMLAgentsWrapper``
 taking random steps; (c) our collector with an MLP policy emitting ``[B, T]`` segments,
 in-process; then the Ray service with 1 and 2 workers and a counting learner (scaling,
-bytes per second to the learner, share of worker time outside ``collect``: transport and
-Ray overhead), and the workers' resident memory over the run.
+bytes per agent step and MB/s per worker to the learner, share of worker time outside
+``collect``: transport and Ray overhead), and the workers' resident memory over the run.
+With ``--env AnimalArena`` or ``GridWorld``: what camera observations cost on the way.
 
     .venv/bin/python benchmarks/bench_rollout.py --seconds 20 [--json out.json]
     .venv/bin/python benchmarks/bench_rollout.py --memory-minutes 10   # long memory run
@@ -133,6 +134,9 @@ def service_run(build_name: str, workers: int, seconds: float, registry: str) ->
         "workers": workers,
         "agent_steps_per_s": (metrics.agent_steps - steps0) / elapsed,
         "bytes_per_s": (bytes1 - bytes0) / elapsed,
+        # to the learner, per agent step and per worker (PNG cameras travel as uint8)
+        "bytes_per_agent_step": (bytes1 - bytes0) / max(metrics.agent_steps - steps0, 1),
+        "mb_per_s_per_worker": (bytes1 - bytes0) / elapsed / workers / 1e6,
         "outside_collect_share": max(0.0, 1.0 - collect_s / (elapsed * workers)),
         "policy_lag_mean": metrics.policy_lag_mean,
         "worker_rss_mb": [round(r / 2**20, 1) for r in rss1],
@@ -223,7 +227,9 @@ def main() -> None:
         f"raw {results['a_raw_agent_steps_per_s']:.0f} | "
         f"torchrl {results['b_torchrl_agent_steps_per_s']:.0f} | ours {c:.0f} | "
         f"c/a {results['c_over_a']:.2f} | c/b {results['c_over_b']:.1f} | "
-        f"2w/1w {results['scaling_2_over_1']:.2f} |"
+        f"2w/1w {results['scaling_2_over_1']:.2f} | "
+        f"{two['bytes_per_agent_step']:.0f} B/agent-step, "
+        f"{two['mb_per_s_per_worker']:.2f} MB/s per worker |"
     )
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))

@@ -45,6 +45,9 @@ class NetworkSettings:
     # multiplicatively (one set of trunk weights per goal dimension, what ML-Agents'
     # hypernetwork achieves); "none": goal signals are ordinary inputs.
     goal_conditioning_type: str = "hyper"
+    # ML-Agents' image encoder (learners.encoders): simple, nature_cnn, resnet, match3 or
+    # fully_connected; each ends in a dense layer to hidden_units.
+    vis_encode_type: str = "simple"
     # Not config keys: set by the learner's policy factory for SAC behaviors.
     tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
     conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter
@@ -62,16 +65,10 @@ def is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
     )
 
 
-def encoder_width(shape: tuple[int, ...]) -> int:
+def encoder_width(shape: tuple[int, ...], settings: NetworkSettings) -> int:
     """Features a sensor's encoder gives (``policies.SensorEncoder``): a vector's size, or
-    32 channels of the CNN's last map (8x8/4 then 4x4/2 from 20 pixels up, else 3x3 twice)."""
-    if len(shape) != 3:
-        return math.prod(shape)
-    _, height, width = shape
-    if min(height, width) >= 20:
-        height, width = ((height - 8) // 4 + 1 - 4) // 2 + 1, ((width - 8) // 4 + 1 - 4) // 2 + 1
-        return 32 * height * width
-    return 32 * (height - 4) * (width - 4)
+    ``hidden_units`` for an image (every ML-Agents image encoder ends in a dense layer)."""
+    return settings.hidden_units if len(shape) == 3 else math.prod(shape)
 
 
 def goal_sensors(spec: BehaviorSpec, settings: NetworkSettings) -> list[int]:
@@ -81,7 +78,7 @@ def goal_sensors(spec: BehaviorSpec, settings: NetworkSettings) -> list[int]:
 
 
 def trunk_input_width(spec: BehaviorSpec, settings: NetworkSettings) -> int:
-    sizes = [encoder_width(tuple(o.shape)) for o in spec.observation_specs]
+    sizes = [encoder_width(tuple(o.shape), settings) for o in spec.observation_specs]
     goals = goal_sensors(spec, settings)
     if not goals:
         return sum(sizes)
@@ -99,11 +96,11 @@ def acts_in_numpy(spec: BehaviorSpec, settings: NetworkSettings) -> bool:
 def initial_weights(
     spec: BehaviorSpec, settings: NetworkSettings, rng: np.random.Generator
 ) -> dict[str, np.ndarray]:
-    """ML-Agents' initialization of every layer but the CNNs: zero biases, weights from
-    ``kaiming_normal`` for a linear layer (std 1/sqrt(fan in)) times a gain (mean and
-    log-std heads 0.2, discrete heads 0.1) or ``xavier_uniform`` (the value head); log-std
-    0; normalizers at mean 0, variance 1. Drawn in a fixed order, so a seeded ``rng``
-    gives the same weights in every process."""
+    """ML-Agents' initialization of every layer but the image encoders' (torch draws those,
+    ``learners.encoders``): zero biases, weights from ``kaiming_normal`` for a linear layer
+    (std 1/sqrt(fan in)) times a gain (mean and log-std heads 0.2, discrete heads 0.1) or
+    ``xavier_uniform`` (the value head); log-std 0; normalizers at mean 0, variance 1.
+    Drawn in a fixed order, so a seeded ``rng`` gives the same weights in every process."""
     state: dict[str, np.ndarray] = {}
 
     def linear(name: str, fan_in: int, out: int, gain: float = 1.0, xavier: bool = False) -> None:
@@ -280,11 +277,16 @@ class PolicyFactory:
         return initial_weights(spec, self.settings_for(behavior), rng)
 
     def network(self, behavior: str, spec: BehaviorSpec) -> ActorCritic:
-        """The learner's ``ActorCritic`` (loads torch), starting from ``initial_weights``."""
+        """The learner's ``ActorCritic`` (loads torch), starting from ``initial_weights``.
+        An image below its encoder's minimum size fails here, naming the behavior."""
+        from learners.encoders import ImageTooSmall
         from learners.policies import seeded_network
 
         initial = self.initial_weights(behavior, spec)
-        return seeded_network(spec, self.settings_for(behavior), self._key(behavior), initial)
+        try:
+            return seeded_network(spec, self.settings_for(behavior), self._key(behavior), initial)
+        except ImageTooSmall as error:
+            raise ImageTooSmall(f"behavior {base_name(behavior)} {error}") from None
 
     def __call__(self, behavior: str, spec: BehaviorSpec) -> NumpyActor | TorchActor:
         settings = self.settings_for(behavior)

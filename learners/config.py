@@ -8,10 +8,11 @@ so a typo fails with one line naming the dotted key (and the key probably meant)
   hyperparameter, and ``trainer_type: poca`` (running another algorithm instead would
   change the experiment silently).
 - Reported (``RunConfig.unsupported``, one ``logging.warning``): ML-Agents features we lack
-  (memory, other visual encoders, curiosity/GAIL/RND, self-play, behavioral cloning,
-  ``threaded``, ``init_path``, run-level ``env_settings`` ..., sampled or curriculum
-  environment parameters); training goes on without them. Values that ask for what we do
-  anyway (``vis_encode_type: simple``, ``memory: null``, ...) are not reported.
+  (memory, curiosity/GAIL/RND, self-play, behavioral cloning, ``threaded``, ``init_path``,
+  run-level ``env_settings`` ..., sampled or curriculum environment parameters); training
+  goes on without them. Values that ask for what we do anyway (``memory: null``,
+  ``deterministic: false``, ...) are not reported. All five of ML-Agents'
+  ``vis_encode_type`` values are implemented (``learners.encoders``).
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from learners.config_keys import (
     parse_number,
     show,
 )
+from learners.devices import DeviceError, check_device
 
 logger = logging.getLogger(__name__)
 
@@ -107,6 +109,7 @@ class RunConfig:
     environment_parameters: Mapping[str, float]
     unsupported: tuple[str, ...]  # dotted paths of known keys we do not implement
     source: str = "<config>"
+    torch_device: str | None = None  # torch_settings.device (None: --device, else auto)
 
     def for_behavior(self, behavior: str) -> TrainerSettings:
         """Settings for ``behavior`` (``?team=`` ignored); ``default`` if not listed."""
@@ -293,6 +296,21 @@ def _engine(raw: object, unsupported: list[str]) -> dict[str, float | int | bool
     return engine
 
 
+def _torch_device(raw: object) -> str | None:
+    """``torch_settings.device`` (its only key in ML-Agents): auto, cpu, cuda or cuda:N."""
+    settings = _mapping("torch_settings", raw)
+    for key in settings:
+        if key != "device":
+            raise _unknown("torch_settings", key, {"device"})
+    device = settings.get("device")
+    if device is None:
+        return None
+    try:
+        return check_device(device, "torch_settings.device")
+    except DeviceError as error:
+        raise ConfigError(str(error)) from None
+
+
 def _environment_parameters(raw: object, unsupported: list[str]) -> dict[str, float]:
     """Plain numbers; samplers and curricula (mappings) are reported and left out."""
     parameters: dict[str, float] = {}
@@ -336,6 +354,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
 
     engine = _engine(data.get("engine_settings"), unsupported)
     parameters = _environment_parameters(data.get("environment_parameters"), unsupported)
+    torch_device = _torch_device(data.get("torch_settings"))
     reported = tuple(dict.fromkeys(unsupported))
     if reported:
         logger.warning("%s: not supported, ignored: %s", source, ", ".join(reported))
@@ -346,6 +365,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
         environment_parameters=MappingProxyType(parameters),
         unsupported=reported,
         source=source,
+        torch_device=torch_device,
     )
 
 

@@ -10,6 +10,8 @@ from collections.abc import Callable
 from typing import Any
 
 SCHEDULES = ("linear", "constant")
+# ML-Agents' image encoders (learners.encoders builds them; torch-free names here)
+VIS_ENCODE_TYPES = ("simple", "nature_cnn", "resnet", "match3", "fully_connected")
 
 
 class ConfigError(ValueError):
@@ -128,9 +130,9 @@ NETWORK: dict[str, Check] = {
     "num_layers": POSITIVE_INT,
     "normalize": _bool,
     "goal_conditioning_type": _choice("hyper", "none"),
+    "vis_encode_type": _choice(*VIS_ENCODE_TYPES),
 }
 NETWORK_UNSUPPORTED: dict[str, object] = {
-    "vis_encode_type": "simple",
     "memory": None,
     "deterministic": False,
 }
@@ -161,5 +163,11 @@ ENGINE: dict[str, Check] = {
     "no_graphics": _bool,
 }
 ENGINE_UNSUPPORTED = ("no_graphics_monitor",)
-RUN_UNSUPPORTED = ("env_settings", "checkpoint_settings", "torch_settings", "debug")
-RUN_KEYS = ("behaviors", "default_settings", "engine_settings", "environment_parameters")
+RUN_UNSUPPORTED = ("env_settings", "checkpoint_settings", "debug")
+RUN_KEYS = (
+    "behaviors",
+    "default_settings",
+    "engine_settings",
+    "environment_parameters",
+    "torch_settings",
+)

@@ -21,6 +21,7 @@ from tensordict import TensorDict
 from torchrl.objectives import A2CLoss
 from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
+from learners.devices import Compute
 from learners.modules import FLAT_ACTION, obs_keys, probabilistic_actor, value_operator
 from learners.onpolicy import (
     SegmentBuffer,
@@ -38,8 +39,11 @@ if TYPE_CHECKING:
 
 
 class IMPALA:
-    def __init__(self, network: ActorCritic, settings: TrainerSettings) -> None:
+    def __init__(
+        self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+    ) -> None:
         self.network, self.settings = network, settings
+        self.compute = compute or Compute()
         h = settings.hyperparameters
         self.actor, self.critic = probabilistic_actor(network), value_operator(network)
         self.loss = A2CLoss(
@@ -52,7 +56,7 @@ class IMPALA:
         )
         self.loss.set_keys(action=FLAT_ACTION, sample_log_prob=keys.LOG_PROB)
         self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate, fused=True)
-        self.buffer = SegmentBuffer(h.buffer_size)
+        self.buffer = SegmentBuffer(h.buffer_size, self.compute)
         self.max_lag_seen = 0
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
@@ -103,7 +107,7 @@ class IMPALA:
         samples, rho_sum, value_sum = 0, 0.0, 0.0
         for _ in range(h.num_epoch):
             batch = self.vtrace(batch)  # targets under the newest weights
-            for index in torch.randperm(len(batch)).split(h.batch_size):
+            for index in torch.randperm(len(batch), device=batch.device).split(h.batch_size):
                 if len(index) < 2:
                     continue
                 steps = batch[index]

@@ -23,6 +23,7 @@ import torch
 
 from learners import checkpoint
 from learners.acting import base_name, policy_factory
+from learners.devices import Compute, to_cpu
 from learners.policies import ActorCritic, numpy_state
 from rollout import keys
 from rollout.segments import Segment
@@ -50,26 +51,30 @@ class Algorithm(Protocol):
 ALGORITHM_MODULES = {"ppo": "learners.ppo", "sac": "learners.sac", "impala": "learners.impala"}
 
 
-def make_algorithm(network: ActorCritic, settings: TrainerSettings) -> Algorithm:
+def make_algorithm(
+    network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+) -> Algorithm:
+    """The behavior's algorithm, on ``compute``'s device (the network must be there)."""
+    compute = compute or Compute()
     if settings.trainer_type == "ppo":
         from learners.ppo import PPO
 
-        return PPO(network, settings)
+        return PPO(network, settings, compute)
     if settings.trainer_type == "sac":
         from learners.sac import SAC
 
-        return SAC(network, settings)
+        return SAC(network, settings, compute)
     if settings.trainer_type == "impala":
         from learners.impala import IMPALA
 
-        return IMPALA(network, settings)
+        return IMPALA(network, settings, compute)
     raise ValueError(f"trainer_type {settings.trainer_type!r}: use ppo, sac or impala")
 
 
 def policy_lag(updates: list[int], acted: torch.Tensor) -> torch.Tensor:
     """Per step: how many of the behavior's own updates (their global versions, ascending)
     came after the version that acted."""
-    made = torch.tensor(updates, dtype=torch.int64)
+    made = torch.tensor(updates, dtype=torch.int64, device=acted.device)
     return len(made) - torch.searchsorted(made, acted.contiguous(), right=True)
 
 
@@ -123,9 +128,11 @@ class CentralLearner:
         max_steps: int | None = None,
         torch_threads: int | None = None,
         seed: int = 0,
+        compute: Compute | None = None,
     ) -> None:
         if torch_threads is not None:  # the Ray actor shares its node with Unity workers
             torch.set_num_threads(torch_threads)
+        self.compute = compute or Compute()
         self.config = config
         self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)
         self.factory = policy_factory(config, seed)
@@ -134,6 +141,7 @@ class CentralLearner:
         self.stats = LearnerStats()
         self._sources = Sources()
         self._reports: list[tuple[str, int, dict[str, float]]] = []
+        self._published: tuple[int, dict[str, dict[str, np.ndarray]]] | None = None
 
     def prepare(self) -> None:
         """Load the algorithms' modules (torchrl, tensordict: seconds of CPU) before the
@@ -170,8 +178,17 @@ class CentralLearner:
         return min(wants) if wants else None
 
     def weights(self) -> tuple[int, dict[str, dict[str, np.ndarray]]]:
-        """Numpy weights: a worker loads them without importing torch."""
-        return self.version, {name: numpy_state(s.network) for name, s in self.behaviors.items()}
+        """Numpy weights (a worker loads them without importing torch), copied off the
+        device once per version and behavior set, however many workers ask."""
+        names = tuple(self.behaviors)
+        if (
+            self._published is None
+            or self._published[0] != self.version
+            or (tuple(self._published[1]) != names)
+        ):
+            states = {name: numpy_state(s.network) for name, s in self.behaviors.items()}
+            self._published = (self.version, states)
+        return self._published
 
     # --- internals ----------------------------------------------------------------------
 
@@ -179,8 +196,10 @@ class CentralLearner:
         if behavior not in self.behaviors:
             settings = self.config.for_behavior(behavior)
             network = self.factory.network(behavior, spec_from_dict(spec))
+            network.to(self.compute.torch_device)
+            network.autocast = self.compute.autocast
             self.behaviors[behavior] = BehaviorState(
-                spec, settings, network, make_algorithm(network, settings)
+                spec, settings, network, make_algorithm(network, settings, self.compute)
             )
         return self.behaviors[behavior]
 
@@ -213,25 +232,28 @@ class CentralLearner:
         return reports
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything to resume (the layout of ``learners/checkpoint.py``)."""
-        return {
-            "step": sum(s.steps for s in self.behaviors.values()),
-            "version": self.version,
-            "behaviors": {
-                name: {
-                    "spec": s.spec,
-                    "network_settings": checkpoint.network_settings_dict(s.network.settings),
-                    "network": s.network.state_dict(),
-                    "algorithm": s.algorithm.state_dict(),
-                    "steps": s.steps,
-                    "updates": list(s.updates),
-                }
-                for name, s in self.behaviors.items()
-            },
-        }
+        """Everything to resume (the layout of ``learners/checkpoint.py``), on the CPU."""
+        return to_cpu(
+            {
+                "step": sum(s.steps for s in self.behaviors.values()),
+                "version": self.version,
+                "behaviors": {
+                    name: {
+                        "spec": s.spec,
+                        "network_settings": checkpoint.network_settings_dict(s.network.settings),
+                        "network": s.network.state_dict(),
+                        "algorithm": s.algorithm.state_dict(),
+                        "steps": s.steps,
+                        "updates": list(s.updates),
+                    }
+                    for name, s in self.behaviors.items()
+                },
+            }
+        )
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.version = int(state["version"])
+        self._published = None
         for name, entry in state["behaviors"].items():
             behavior = self._behavior(name, entry["spec"])
             behavior.network.load_state_dict(entry["network"])

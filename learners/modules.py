@@ -78,7 +78,8 @@ class ActionDistribution(Distribution):
     def entropy(self) -> torch.Tensor:
         """ML-Agents' measure, which ``beta`` weighs: the Gaussian's mean entropy per
         dimension, plus each branch's entropy."""
-        total = torch.zeros(self.batch_shape)
+        reference = self.normal.loc if self.normal is not None else self.categoricals[0].logits
+        total = torch.zeros(self.batch_shape, device=reference.device)
         if self.normal is not None:
             total = total + self.normal.entropy().mean(-1)
         for dist in self.categoricals:

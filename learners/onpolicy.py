@@ -14,6 +14,7 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from learners.devices import Compute
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
 from rollout import keys
@@ -22,15 +23,18 @@ TRAIN = "train"  # bool per step: counts in the loss (False: context for the est
 
 
 class SegmentBuffer:
-    def __init__(self, buffer_size: int) -> None:
+    def __init__(self, buffer_size: int, compute: Compute | None = None) -> None:
         self.buffer_size = buffer_size
+        self.compute = compute or Compute()
         self.segments: list[TensorDict] = []
         self.steps = 0
 
     def add(self, segment: TensorDict, keep: torch.Tensor | None = None) -> int:
         """Buffer a segment; ``keep`` (per step) narrows which steps train."""
         segment = segment.exclude(*keys.METADATA)
-        train = torch.ones(segment.batch_size, dtype=torch.bool) if keep is None else keep
+        if keep is None:
+            keep = torch.ones_like(segment[keys.POLICY_VERSION], dtype=torch.bool)
+        train = keep
         segment[TRAIN] = train
         steps = int(train.sum())
         if steps:
@@ -47,7 +51,7 @@ class SegmentBuffer:
         return max(self.buffer_size + 1 - self.steps, 1)
 
     def take(self, network: ActorCritic, reward_strength: float) -> TensorDict:
-        batch = torch.cat(self.segments, dim=0)
+        batch = self.compute.to_device(torch.cat(self.segments, dim=0))
         self.segments, self.steps = [], 0
         train, obs = batch[TRAIN], batch[keys.OBS]
         network.update_normalization({n: obs[n][train] for n in obs.keys()})  # noqa: SIM118

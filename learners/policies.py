@@ -1,13 +1,14 @@
 """Actor-critic networks built from an ML-Agents ``BehaviorSpec``.
 
-One encoder per sensor (an MLP input for vectors, a small CNN for images and grids),
-concatenated into MLP trunks (policy and value apart) with ML-Agents' layers: Swish
-activations and its initializations, drawn in numpy by ``learners.acting.initial_weights``
-(trunk weights ``kaiming_normal`` for a linear layer, the Gaussian mean head at gain 0.2,
-discrete heads at 0.1, the value head Xavier-uniform, log-std 0). Heads for continuous
-actions (a Gaussian whose raw sample is stored; Unity receives ``clamp(a, -3, 3) / 3``,
-as from mlagents-learn), for each discrete branch (a masked categorical: masked actions
-have probability zero), and for the value.
+One encoder per sensor (vectors as they are, optionally normalized; images and grids
+through ML-Agents' ``vis_encode_type`` encoder, ``learners.encoders``), concatenated into
+MLP trunks (policy and value apart) with ML-Agents' layers: Swish activations and its
+initializations, drawn in numpy by ``learners.acting.initial_weights`` (trunk weights
+``kaiming_normal`` for a linear layer, the Gaussian mean head at gain 0.2, discrete heads
+at 0.1, the value head Xavier-uniform, log-std 0). Heads for continuous actions (a
+Gaussian whose raw sample is stored; Unity receives ``clamp(a, -3, 3) / 3``, as from
+mlagents-learn), for each discrete branch (a masked categorical: masked actions have
+probability zero), and for the value.
 Plain torch: no Ray, so the learner side is testable in-process. Rollout workers act
 with ``learners.acting`` (numpy, no torch) and come here only for images and goals
 (``TorchActor``).
@@ -20,8 +21,11 @@ correction; and ``conditional_sigma``: the log-std comes from a head on the trun
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from contextlib import AbstractContextManager
+from typing import Any
 
 import numpy as np
 import torch
@@ -41,6 +45,7 @@ from learners.acting import (
     to_unity,
     trunk_input_width,
 )
+from learners.encoders import visual_encoder
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)
@@ -88,37 +93,33 @@ class RunningNorm(nn.Module):
 
 
 class SensorEncoder(nn.Module):
-    """Vectors pass through flattened; images ``[C, H, W]`` go through a small CNN: ML-Agents'
-    ``simple`` encoder (8x8 stride 4, then 4x4 stride 2) from 20 pixels up, which keeps
-    the flattened features few (288 for 40x40), else two 3x3 convolutions."""
+    """Vectors pass through flattened (normalized when ``normalize``); images ``[C, H, W]``
+    (float in [0, 1] or uint8) go through ``settings.vis_encode_type``'s encoder to
+    ``hidden_units`` features. ``sensor`` names the image in a too-small error."""
 
-    def __init__(self, shape: tuple[int, ...], normalize: bool = False) -> None:
+    def __init__(
+        self,
+        shape: tuple[int, ...],
+        settings: NetworkSettings,
+        normalize: bool = False,
+        sensor: str = "image",
+    ) -> None:
         super().__init__()
         self.norm: RunningNorm | None = None
-        if len(shape) == 3:
-            channels, height, width = shape
-            large = min(height, width) >= 20
-            self.net: nn.Module = nn.Sequential(
-                nn.Conv2d(channels, 16, kernel_size=8 if large else 3, stride=4 if large else 1),
-                nn.LeakyReLU(),
-                nn.Conv2d(16, 32, kernel_size=4 if large else 3, stride=2 if large else 1),
-                nn.LeakyReLU(),
-                nn.Flatten(),
+        self.image = len(shape) == 3
+        if self.image:
+            self.net: nn.Module = visual_encoder(
+                tuple(shape), settings.vis_encode_type, settings.hidden_units, sensor
             )
-            with torch.no_grad():
-                self.size = int(self.net(torch.zeros(1, channels, height, width)).shape[1])
         else:
             self.net = nn.Flatten(start_dim=-len(shape)) if len(shape) > 1 else nn.Identity()
-            self.size = math.prod(shape)
             if normalize:
-                self.norm = RunningNorm(self.size)
+                self.norm = RunningNorm(math.prod(shape))
+        self.size = encoder_width(tuple(shape), settings)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.norm is not None:
             return self.norm(self.net(x))
-        if x.dim() > 4:  # [B, T, C, H, W]: fold the time axis for the convolutions
-            lead = x.shape[:-3]
-            return self.net(x.reshape(-1, *x.shape[-3:])).reshape(*lead, -1)
         return self.net(x)
 
 
@@ -137,20 +138,19 @@ class ActorCritic(nn.Module):
         settings: NetworkSettings | None = None,
         initial: Mapping[str, np.ndarray] | None = None,
     ) -> None:
-        """``initial``: every weight but the CNNs' (``acting.initial_weights``, ML-Agents'
-        initialization); drawn here from torch's random stream when not given."""
+        """``initial``: every weight but the image encoders' (``acting.initial_weights``,
+        ML-Agents' initialization); drawn here from torch's random stream when not given.
+        An image below its encoder's minimum size raises ``encoders.ImageTooSmall``."""
         super().__init__()
         settings = settings or NetworkSettings()
         self.spec, self.settings = spec, settings
         self.sensor_names = [o.name for o in spec.observation_specs]
         self.encoders = nn.ModuleList(
-            SensorEncoder(o.shape, settings.normalize) for o in spec.observation_specs
+            SensorEncoder(o.shape, settings, settings.normalize, o.name)
+            for o in spec.observation_specs
         )
         self.goal_sensors = goal_sensors(spec, settings)
         encoded = trunk_input_width(spec, settings)
-        assert [e.size for e in self.encoders] == [
-            encoder_width(tuple(o.shape)) for o in spec.observation_specs
-        ]
         # Separate policy and value trunks over shared encoders (ML-Agents' default,
         # shared_critic: false): the value loss does not pull on the policy's features.
         self.trunk = _mlp(encoded, settings)
@@ -175,6 +175,8 @@ class ActorCritic(nn.Module):
             {k: torch.from_numpy(v) for k, v in initial.items()}, strict=False
         )
         assert not unexpected and all(".net." in k for k in missing), (missing, unexpected)
+        # the learner's mixed precision (``devices.Compute.autocast``): images in bfloat16
+        self.autocast: Callable[[], AbstractContextManager[Any]] = contextlib.nullcontext
 
     def update_normalization(self, obs: dict[str, torch.Tensor]) -> None:
         """Fold observations the learner trains on into the running statistics."""
@@ -183,7 +185,13 @@ class ActorCritic(nn.Module):
                 encoder.norm.update(encoder.net(obs[name]))
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        parts = [enc(obs[name]) for name, enc in zip(self.sensor_names, self.encoders, strict=True)]
+        parts = []
+        for name, encoder in zip(self.sensor_names, self.encoders, strict=True):
+            if encoder.image:  # where mixed precision pays
+                with self.autocast():
+                    parts.append(encoder(obs[name]).float())
+            else:
+                parts.append(encoder(obs[name]))
         if not self.goal_sensors:
             return torch.cat(parts, dim=-1)
         goal = torch.cat([p for i, p in enumerate(parts) if i in self.goal_sensors], dim=-1)
@@ -250,8 +258,8 @@ class ActorCritic(nn.Module):
         for a batch: one log-probability per action component (``LOG_PROB``)."""
         hidden = self.features(obs)
         n = hidden.shape[0]
-        log_probs = [torch.zeros(n, 0)]
-        continuous = torch.zeros(n, 0)
+        log_probs = [torch.zeros(n, 0, device=hidden.device)]
+        continuous = torch.zeros(n, 0, device=hidden.device)
         if self.mean is not None:
             # The Gaussian by hand: on the acting hot path, Distribution objects cost more
             # than the network (same values as Normal.sample / Normal.log_prob).
@@ -263,7 +271,7 @@ class ActorCritic(nn.Module):
                 gaussian = gaussian - tanh_log_det(continuous)
                 continuous = torch.tanh(continuous)
             log_probs.append(gaussian)
-        discrete = torch.zeros(n, 0, dtype=torch.int64)
+        discrete = torch.zeros(n, 0, dtype=torch.int64, device=hidden.device)
         if self.logits is not None:
             # Gumbel-max sampling per branch over masked log-softmax logits: the same law
             # as MaskedCategorical.sample, without building distribution objects.
@@ -292,10 +300,12 @@ class ActorCritic(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(log-probs [..., c + branches] as ``act`` gives them, entropy, value) of given
         actions under the current weights (what PPO's loss needs); batch dims are kept."""
-        hidden = self.features(obs)
+        encoded = self.encode(obs)  # once for both trunks: images cost the most here
+        hidden = self.trunk(encoded)
         normal, branches = self.distributions(hidden, mask)
         lead = hidden.shape[:-1]
-        log_probs, entropy = [torch.zeros(*lead, 0)], torch.zeros(lead)
+        log_probs = [torch.zeros(*lead, 0, device=hidden.device)]
+        entropy = torch.zeros(lead, device=hidden.device)
         if normal is not None and continuous is not None:
             if self.settings.tanh_squash:  # invert the squash on the stored tanh(u)
                 bound = 1.0 - SQUASH_EPS
@@ -310,7 +320,8 @@ class ActorCritic(nn.Module):
             assert discrete is not None
             log_probs.append(dist.log_prob(discrete[..., index]).unsqueeze(-1))
             entropy = entropy + dist.entropy()
-        return torch.cat(log_probs, dim=-1), entropy, self.state_value(obs)
+        value = self.value(self.critic_trunk(encoded)).squeeze(-1)
+        return torch.cat(log_probs, dim=-1), entropy, value
 
 
 class TorchActor:
@@ -338,8 +349,9 @@ class TorchActor:
 def seeded_network(
     spec: BehaviorSpec, settings: NetworkSettings, seed: int, initial: Mapping[str, np.ndarray]
 ) -> ActorCritic:
-    """An ``ActorCritic`` with ``initial`` weights (``acting.initial_weights``), its CNNs
-    drawn from torch seeded by ``seed``; the caller's random stream is left as it was."""
+    """An ``ActorCritic`` with ``initial`` weights (``acting.initial_weights``), its image
+    encoders drawn from torch seeded by ``seed``; the caller's random stream is left as
+    it was."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         return ActorCritic(spec, settings, initial)

@@ -35,6 +35,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.objectives.value import GAE
 
+from learners.devices import Compute
 from learners.modules import value_operator
 from learners.onpolicy import (
     TRAIN,
@@ -94,8 +95,11 @@ class Steps:
 
 
 class PPO:
-    def __init__(self, network: ActorCritic, settings: TrainerSettings) -> None:
+    def __init__(
+        self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+    ) -> None:
         self.network, self.settings = network, settings
+        self.compute = compute or Compute()
         h = settings.hyperparameters
         self.advantage = GAE(
             gamma=settings.gamma,
@@ -104,7 +108,7 @@ class PPO:
             average_gae=False,
         )
         self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate, fused=True)
-        self.buffer = SegmentBuffer(h.buffer_size)
+        self.buffer = SegmentBuffer(h.buffer_size, self.compute)
         self.stale_steps = 0
 
     # --- data in ------------------------------------------------------------------------
@@ -142,7 +146,8 @@ class PPO:
         totals: dict[str, float] = {}
         data = Steps.of(steps)
         for _ in range(h.num_epoch):
-            for index in torch.randperm(len(data.log_prob)).split(h.batch_size):
+            order = torch.randperm(len(data.log_prob), device=data.log_prob.device)
+            for index in order.split(h.batch_size):
                 if len(index) == h.batch_size:
                     losses = self.loss(data[index], epsilon, beta)
                     gradient_step(losses, self.optimizer, totals)

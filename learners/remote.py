@@ -15,11 +15,22 @@ class LearnerHost:
     ``rollout/learner_api.py``) in the actor's process."""
 
     def __init__(
-        self, config: RunConfig, max_steps: int | None, torch_threads: int | None, seed: int
+        self,
+        config: RunConfig,
+        max_steps: int | None,
+        torch_threads: int | None,
+        seed: int,
+        device: str = "cpu",
+        mixed_precision: bool = False,
     ) -> None:
+        from learners.devices import Compute
         from learners.learner import CentralLearner
 
-        self.learner = CentralLearner(config, max_steps, torch_threads, seed)
+        compute = Compute.of(device, mixed_precision)
+        self.learner = CentralLearner(config, max_steps, torch_threads, seed, compute)
+
+    def device(self) -> str:
+        return self.learner.compute.device
 
     def prepare(self) -> None:
         self.learner.prepare()
@@ -44,9 +55,16 @@ class LearnerHost:
 
 
 def learner_actor(
-    config: RunConfig, max_steps: int | None = None, num_cpus: float = 0, seed: int = 0
+    config: RunConfig,
+    max_steps: int | None = None,
+    num_cpus: float = 0,
+    seed: int = 0,
+    device: str = "cpu",
+    mixed_precision: bool = False,
 ) -> Any:
     """Start the learner as a Ray actor (Ray imported here: the class itself needs none).
+    ``device`` other than cpu: the actor asks Ray for one GPU (``learners.devices``'s
+    ``learner_device`` decides, in the driver, whether it should).
 
     ``progress`` and ``drain_reports`` answer on a thread of their own: the driver's
     summaries and checks do not wait for an update in progress (mlagents-learn writes a
@@ -58,7 +76,7 @@ def learner_actor(
         drain_reports = ray.method(concurrency_group="status")(LearnerHost.drain_reports)
 
     remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
-    remote = remote.options(num_cpus=num_cpus)
-    learner = remote.remote(config, max_steps, 1, seed)
+    remote = remote.options(num_cpus=num_cpus, num_gpus=0 if device == "cpu" else 1)
+    learner = remote.remote(config, max_steps, 1, seed, device, mixed_precision)
     learner.prepare.remote()  # while the workers start
     return learner

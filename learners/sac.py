@@ -31,6 +31,7 @@ from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import TanhNormal
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate
 
+from learners.devices import Compute
 from learners.modules import PolicyParams, obs_keys
 from learners.policies import ActorCritic, SensorEncoder
 from learners.schedules import decay
@@ -58,16 +59,18 @@ class MaskedSoftmax(torch.distributions.Categorical):
 class QNetwork(nn.Module):
     """Q(obs, action) -> [1] (continuous) or Q(obs) -> [actions] (discrete).
 
-    Own encoders (a CNN per image sensor, as ML-Agents gives each Q network its own body)
-    over observations normalized with the policy's running statistics, read but never
-    trained here; then a SiLU MLP of the behavior's hidden units and layers.
+    Own encoders (the policy's ``vis_encode_type`` per image sensor, as ML-Agents gives
+    each Q network its own body) over observations normalized with the policy's running
+    statistics, read but never trained here; then a SiLU MLP of the behavior's hidden
+    units and layers.
     """
 
     def __init__(self, network: ActorCritic, outputs: int, action_size: int = 0) -> None:
         super().__init__()
         self._norms = [e.norm for e in network.encoders]  # a list: not submodules/params
         self.encoders = nn.ModuleList(
-            SensorEncoder(o.shape) for o in network.spec.observation_specs
+            SensorEncoder(o.shape, network.settings, sensor=o.name)
+            for o in network.spec.observation_specs
         )
         width = sum(e.size for e in self.encoders) + action_size
         layers: list[nn.Module] = []
@@ -100,7 +103,10 @@ class _TargetKeepingDiscreteSACLoss(DiscreteSACLoss):
 
 
 class SAC:
-    def __init__(self, network: ActorCritic, settings: TrainerSettings) -> None:
+    def __init__(
+        self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+    ) -> None:
+        self.compute = compute or Compute()
         branches = network.branches
         if (
             (network.continuous and branches)
@@ -173,6 +179,7 @@ class SAC:
                 target_entropy_weight=DISCRETE_TARGET_ENTROPY_SCALE,
             )
             self.q_out = "action_value"
+        self.loss.to(self.compute.torch_device)  # the Q networks, their targets, alpha
         self.loss.make_value_estimator(gamma=settings.gamma)  # TD(0): r + gamma V(s')
         self.target_update = SoftUpdate(self.loss, tau=h.tau)
         self.actor_optimizer = torch.optim.Adam(
@@ -190,7 +197,9 @@ class SAC:
         # compilable: plain counters, not multiprocessing.Value (this buffer never leaves
         # the learner process, and mp.Value would start a resource-tracker process)
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(h.buffer_size, compilable=True),
+            storage=LazyTensorStorage(
+                h.buffer_size, device=self.compute.torch_device, compilable=True
+            ),
             batch_size=h.batch_size,
             compilable=True,
         )

@@ -111,6 +111,8 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
         collect_ahead=args.collect_ahead,
         max_workers=args.max_workers,
         learner_cpus=args.learner_cpus,
+        device=args.device,
+        mixed_precision=args.mixed_precision,
     )
     try:
         result = train(options, starting)
@@ -140,6 +142,15 @@ def _loopback_only_ray() -> None:
     if "ray" in sys.modules:
         raise RuntimeError("_loopback_only_ray() must run before ray is imported")
     os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+
+
+def _device(value: str) -> str:
+    from learners.devices import DEVICES, DeviceError, check_device
+
+    try:
+        return check_device(value)
+    except DeviceError:
+        raise argparse.ArgumentTypeError(f"{value!r}: use {DEVICES}") from None
 
 
 def _workers(value: str) -> int | str:
@@ -293,6 +304,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="with --workers auto: the cluster's CPUs no worker counts on, left to the "
         "learner (0 where it runs on a head without CPUs for Ray, as on KubeRay)",
+    )
+    train.add_argument(
+        "--device",
+        "--torch-device",
+        type=_device,
+        help="the learner's device: auto (a GPU when the Ray cluster has one), cpu, cuda or "
+        "cuda:N; default: the config's torch_settings.device, else auto. Workers act on CPU",
+    )
+    train.add_argument(
+        "--mixed-precision",
+        action="store_true",
+        help="the learner runs its image encoders in bfloat16 autocast (off by default)",
     )
     train.add_argument(
         "--collect-ahead",

@@ -187,8 +187,12 @@ class Collector:
     def _exchange(self, pieces: dict[str, list[Segment]]) -> int:
         unity, steps = self.unity, 0
         for behavior, spec in unity.behavior_specs.items():
-            builder = self.builders.get(behavior) or self._add_behavior(behavior, spec)
             decisions, terminals = unity.get_steps(behavior)
+            builder = self.builders.get(behavior)
+            if builder is None:
+                if not (len(decisions) or len(terminals)):
+                    continue  # no agent yet: how its sensors arrive (PNG?) is unknown
+                builder = self._add_behavior(behavior, spec)
             self._agents_seen = self._agents_seen or bool(len(decisions) or len(terminals))
             builder.observe(decisions, terminals)
             finished = builder.collect(self.metrics.env_steps)
@@ -204,7 +208,10 @@ class Collector:
         return steps
 
     def _add_behavior(self, behavior: str, spec: BehaviorSpec) -> SegmentBuilder:
-        builder = SegmentBuilder(behavior, spec, self.horizon, worker=self.worker)
+        pixels = self.unity.png_sensors(behavior) or frozenset()
+        builder = SegmentBuilder(
+            behavior, spec, self.horizon, worker=self.worker, pixel_sensors=pixels
+        )
         self.builders[behavior] = builder
         actor = self.actor_factory(behavior, spec)
         if behavior in self.weights:

@@ -7,7 +7,7 @@ under ``"next"`` with a trailing dimension of 1 for scalars. Action masks follow
 
 from __future__ import annotations
 
-OBS = "obs"  # ("obs", <sensor name>): float32 [*sensor shape], one entry per sensor
+OBS = "obs"  # ("obs", <sensor name>): float32 [*sensor shape] (PNG sensors: uint8), per sensor
 ACTION = "action"  # ("action", CONTINUOUS) float32 [c]; ("action", DISCRETE) int64 [branches]
 CONTINUOUS = "continuous"
 DISCRETE = "discrete"

@@ -132,7 +132,10 @@ class SegmentBuilder:
         horizon: int,
         worker: int = 0,
         gone_after: int | None = None,
+        pixel_sensors: frozenset[str] = frozenset(),
     ) -> None:
+        """``pixel_sensors``: sensors whose values are k/255 (Unity sent them as PNG), kept
+        as uint8 0..255 from here to the learner: a quarter of float32's bytes."""
         self.behavior = behavior
         self.spec = spec
         self._spec_dict = specs.spec_to_dict(spec)  # travels with each segment to the learner
@@ -142,6 +145,7 @@ class SegmentBuilder:
         self.counters = Counters()
         self.episodes: list[tuple[np.ndarray, np.ndarray]] = []  # (returns, lengths) batches
         self._sensors = [(o.name, o.shape) for o in spec.observation_specs]
+        self._pixels = frozenset(pixel_sensors)
         self._continuous = spec.action_spec.continuous_size
         self._branches = len(spec.action_spec.discrete_branches)
         self._mask_size = int(sum(spec.action_spec.discrete_branches))
@@ -179,9 +183,10 @@ class SegmentBuilder:
             "agent": np.full(s, -1, np.int64),  # agent id per slot, -1 = free
         }
         for name, shape in self._sensors:
-            fields[f"obs/{name}"] = np.zeros((s, t, *shape), np.float32)
-            fields[f"next/{name}"] = np.zeros((s, t, *shape), np.float32)
-            fields[f"p_obs/{name}"] = np.zeros((s, *shape), np.float32)
+            dtype = np.uint8 if name in self._pixels else np.float32
+            fields[f"obs/{name}"] = np.zeros((s, t, *shape), dtype)
+            fields[f"next/{name}"] = np.zeros((s, t, *shape), dtype)
+            fields[f"p_obs/{name}"] = np.zeros((s, *shape), dtype)
         return fields
 
     def _allocate(self, slots: int) -> None:
@@ -272,7 +277,7 @@ class SegmentBuilder:
         for name, _ in self._sensors:
             f[f"obs/{name}"][slots, t] = f[f"p_obs/{name}"][slots]
         for (name, _), values in zip(self._sensors, next_obs, strict=True):
-            f[f"next/{name}"][slots, t] = values
+            f[f"next/{name}"][slots, t] = self._stored(name, values)
         for row, pending in (
             ("cont", "p_cont"),
             ("disc", "p_disc"),
@@ -298,6 +303,12 @@ class SegmentBuilder:
             f["ep_return"][ended] = 0.0
             f["ep_length"][ended] = 0
 
+    def _stored(self, name: str, values: np.ndarray) -> np.ndarray:
+        """A pixel sensor's floats k/255 as the uint8 k (exact); other sensors as they are."""
+        if name not in self._pixels:
+            return values
+        return np.rint(values * np.float32(255.0)).astype(np.uint8)
+
     def act(self, decisions: DecisionSteps, chosen: Decisions, policy_version: int) -> None:
         """Remember what the decision agents were told to do, to complete next exchange."""
         if not len(decisions):
@@ -305,7 +316,7 @@ class SegmentBuilder:
         slots = self._slots(decisions.agent_id.astype(np.int64), create=True)
         f = self._f  # read after _slots: the storage may have grown
         for (name, _), values in zip(self._sensors, decisions.obs, strict=True):
-            f[f"p_obs/{name}"][slots] = values
+            f[f"p_obs/{name}"][slots] = self._stored(name, values)
         f["p_cont"][slots] = chosen.continuous
         f["p_disc"][slots] = chosen.discrete
         f["p_logp"][slots] = chosen.log_prob

@@ -8,6 +8,7 @@ that build torchrl specs (the learner's side and tests), so workers never load t
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
 from mlagents_envs.base_env import (
@@ -24,12 +25,19 @@ if TYPE_CHECKING:
     from torchrl.data import Composite
 
 
-def observation_spec(spec: BehaviorSpec) -> Composite:
+def observation_spec(spec: BehaviorSpec, pixel_sensors: Iterable[str] = ()) -> Composite:
+    """float32 per sensor; ``pixel_sensors`` (sent by Unity as PNG) as uint8 0..255."""
     import torch
-    from torchrl.data import Composite, Unbounded
+    from torchrl.data import Bounded, Composite, Unbounded
 
+    pixels = set(pixel_sensors)
     return Composite(
-        {o.name: Unbounded(o.shape, dtype=torch.float32) for o in spec.observation_specs}
+        {
+            o.name: Bounded(0, 255, o.shape, dtype=torch.uint8)
+            if o.name in pixels
+            else Unbounded(o.shape, dtype=torch.float32)
+            for o in spec.observation_specs
+        }
     )
 
 
@@ -55,7 +63,7 @@ def log_prob_size(spec: BehaviorSpec) -> int:
     return spec.action_spec.continuous_size + len(spec.action_spec.discrete_branches)
 
 
-def step_spec(spec: BehaviorSpec) -> Composite:
+def step_spec(spec: BehaviorSpec, pixel_sensors: Iterable[str] = ()) -> Composite:
     """One step of a segment: what the worker records per decision and its outcome."""
     import torch
     from torchrl.data import Binary, Composite, Unbounded
@@ -63,7 +71,7 @@ def step_spec(spec: BehaviorSpec) -> Composite:
     scalar_float = Unbounded((1,), dtype=torch.float32)
     flag = Binary(1, shape=(1,), dtype=torch.bool)
     entries = {
-        keys.OBS: observation_spec(spec),
+        keys.OBS: observation_spec(spec, pixel_sensors),
         keys.ACTION: action_spec(spec),
         keys.LOG_PROB: Unbounded((log_prob_size(spec),), dtype=torch.float32),
         keys.POLICY_VERSION: Unbounded((), dtype=torch.int64),
@@ -71,7 +79,7 @@ def step_spec(spec: BehaviorSpec) -> Composite:
         keys.GROUP_ID: Unbounded((), dtype=torch.int64),
         keys.NEXT: Composite(
             {
-                keys.OBS: observation_spec(spec),
+                keys.OBS: observation_spec(spec, pixel_sensors),
                 keys.REWARD: scalar_float,
                 keys.GROUP_REWARD: scalar_float.clone(),
                 keys.DONE: flag,

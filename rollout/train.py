@@ -31,6 +31,7 @@ from ray.exceptions import RayActorError
 
 from learners.acting import policy_factory
 from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
+from learners.devices import DeviceError, learner_device
 from learners.remote import learner_actor
 from rollout.learner_keeper import LearnerKeeper
 from rollout.local_ray import BackgroundRay, init_local_ray
@@ -76,6 +77,8 @@ class TrainOptions:
     learner_cpus: float = 1.0  # --workers auto: CPUs of the cluster left to the learner
     max_workers: int | None = None  # --workers auto: at most this many (autoscaler's goal)
     collect_ahead: int = 0  # on-policy: steps collected past the learner's demand (service)
+    device: str | None = None  # the learner's; None: torch_settings.device, else auto
+    mixed_precision: bool = False  # the learner's image encoders in bfloat16 autocast
 
 
 @dataclass(frozen=True)
@@ -144,11 +147,36 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
     )
 
 
+def choose_device(options: TrainOptions, config: RunConfig) -> str:
+    """The learner's device, chosen once per run: on a GPU when asked or (auto) when the
+    cluster has one. A restarted learner gets the same, so it waits for a GPU node to
+    come back rather than moving to the CPU or failing."""
+    requested = options.device or config.torch_device or "auto"
+    try:
+        return learner_device(requested, ray.cluster_resources().get("GPU", 0))
+    except DeviceError as error:
+        raise TrainingError(str(error)) from None
+
+
+def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
+    return learner_actor(
+        config,
+        options.max_steps,
+        seed=options.seed,
+        device=device,
+        mixed_precision=options.mixed_precision,
+    )
+
+
 def build_system(
-    options: TrainOptions, config: RunConfig, unity: UnityConfig, resume: dict[str, Any] | None
+    options: TrainOptions,
+    config: RunConfig,
+    unity: UnityConfig,
+    resume: dict[str, Any] | None,
+    device: str = "cpu",
 ) -> tuple[RolloutService, Any]:
     """Learner actor (restored when resuming) and the service with its workers (not started)."""
-    learner = learner_actor(config, options.max_steps, seed=options.seed)
+    learner = start_learner(options, config, device)
     if resume is not None:
         ray.get(learner.load_state_dict.remote(resume))
     elastic = options.workers == "auto"
@@ -269,10 +297,11 @@ def _run(
         max(s.keep_checkpoints for s in behaviors),
         int(resume["step"]) if resume else 0,
     )
-    service, learner = build_system(options, config, unity, resume)
+    device = choose_device(options, config)
+    service, learner = build_system(options, config, unity, resume, device)
     keeper = LearnerKeeper(
         learner,
-        lambda: learner_actor(config, options.max_steps, seed=options.seed),
+        lambda: start_learner(options, config, device),
         run_dir,
         options.max_learner_restarts,
     )

@@ -30,8 +30,10 @@ from mlagents_envs import env_utils
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps, TerminalSteps
 from mlagents_envs.communicator_objects.agent_action_pb2 import AgentActionProto
 from mlagents_envs.communicator_objects.command_pb2 import STEP
+from mlagents_envs.communicator_objects.observation_pb2 import PNG
 from mlagents_envs.communicator_objects.unity_input_pb2 import UnityInputProto
 from mlagents_envs.communicator_objects.unity_rl_input_pb2 import UnityRLInputProto
+from mlagents_envs.communicator_objects.unity_rl_output_pb2 import UnityRLOutputProto
 from mlagents_envs.environment import UnityEnvironment
 from mlagents_envs.exception import (
     UnityCommunicationException,
@@ -168,8 +170,23 @@ class GuardedUnityEnvironment(UnityEnvironment):
         **kwargs: object,
     ) -> None:
         self._on_bound = on_bound
+        # per behavior, the names of its sensors Unity sends as PNG (read off the first
+        # agent info that carries them): their values are exactly k/255
+        self.png_sensors: dict[str, frozenset[str]] = {}
         file_name = _guard_launcher(executable) if executable else None
         super().__init__(file_name=file_name, base_port=port, worker_id=0, **kwargs)
+
+    def _update_state(self, output: UnityRLOutputProto) -> None:
+        for behavior, infos in output.agentInfos.items():
+            if behavior not in self.png_sensors and infos.value and behavior in self._env_specs:
+                sensors = self._env_specs[behavior].observation_specs
+                observations = infos.value[0].observations
+                self.png_sensors[behavior] = frozenset(
+                    spec.name
+                    for spec, proto in zip(sensors, observations, strict=False)
+                    if proto.compression_type == PNG
+                )
+        super()._update_state(output)
 
     def _get_communicator(  # type: ignore[override]
         self, worker_id: int, base_port: int, timeout_wait: int
@@ -350,6 +367,11 @@ class UnityInstance:
 
     def get_steps(self, behavior: str) -> tuple[DecisionSteps, TerminalSteps]:
         return self._require().get_steps(behavior)
+
+    def png_sensors(self, behavior: str) -> frozenset[str] | None:
+        """The behavior's sensors that arrive as PNG (None: no agent of it seen yet). Their
+        values are multiples of 1/255, so they travel to the learner as uint8, losslessly."""
+        return self._require().png_sensors.get(behavior)
 
     def set_actions(self, behavior: str, actions: ActionTuple) -> None:
         self._require().set_actions(behavior, actions)

@@ -305,3 +305,20 @@ def test_two_runs_on_one_node_share_the_port_registry(tmp_path):
     while run_marked(marker) and time.monotonic() < deadline:
         time.sleep(0.5)
     assert not run_marked(marker)
+
+
+def test_cuda_on_a_cluster_without_a_gpu_is_one_line_before_any_worker(ray_session, tmp_path):
+    """The session's Ray has no GPU (nor has CI): asking the learner for one stops the
+    run before a worker or a Unity player starts."""
+    import ray
+
+    if ray.cluster_resources().get("GPU", 0):
+        pytest.skip("this cluster has a GPU: the refusal needs one without")
+    options = TrainOptions(env="unitysim:3DBall", results_dir=str(tmp_path), device="cuda")
+    with pytest.raises(TrainingError) as error:
+        train(options)
+    message = str(error.value)
+    assert "\n" not in message and message.startswith("--device cuda: the Ray cluster has no GPU")
+    assert not (tmp_path / "run" / "unity-logs").exists() or not any(
+        (tmp_path / "run" / "unity-logs").iterdir()
+    )

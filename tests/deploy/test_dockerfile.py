@@ -1,15 +1,23 @@
 """The Dockerfile, without a Docker engine: hadolint passes, and the image cannot drift from
 the README's install (same script, same constraints), the CLI (entrypoint, default command,
-health check) and the documented paths (/builds, the results volume)."""
+health check) and the documented paths (/builds, the results volume); the TORCH build
+argument's steps, run as written, choose torch's CPU or CUDA index."""
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
+import functools
+import http.server
+import json
+import os
 import re
 import shlex
 import subprocess
 import sys
+import threading
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -38,8 +46,6 @@ def args_of(name: str) -> list[str]:
 
 
 def exec_form(text: str) -> list[str]:
-    import json
-
     return json.loads(text)
 
 
@@ -151,3 +157,142 @@ def test_the_runtime_stage_has_no_compiler_and_render_libraries_only_on_request(
 def test_system_libraries_are_documented(package):
     assert re.search(rf"\b{re.escape(package)}\b", " ".join(args_of("RUN")))
     assert package in (ROOT / "deploy/README.md").read_text()
+
+
+# ---- the TORCH build argument: its steps of the install RUN, run here as written by the
+# Dockerfile's SHELL, with python3.11 standing for the base image's interpreter.
+
+TORCH_INDEX = "https://download.pytorch.org/whl/"
+WHEEL_TAG = f"cp{sys.version_info[0]}{sys.version_info[1]}"
+
+
+def arg_default(name: str) -> str:
+    """What a RUN sees for an ARG that `docker build` is given no --build-arg for."""
+    for text in args_of("ARG"):
+        key, _, value = text.partition("=")
+        if key == name:
+            return value
+    raise AssertionError(f"no ARG {name}")
+
+
+def torch_steps() -> list[str]:
+    """The install RUN's steps before setup-venv.sh: choose torch's index, then check it."""
+    run = next(r for r in args_of("RUN") if "scripts/setup-venv.sh" in r)
+    steps = [step.strip() for step in run.split(" && ")]
+    return steps[: next(i for i, step in enumerate(steps) if "setup-venv.sh" in step)]
+
+
+def choosing_steps() -> list[str]:
+    """The steps that only choose the index (no network), up to its export to pip."""
+    steps = torch_steps()
+    end = steps.index("export PIP_EXTRA_INDEX_URL") + 1
+    assert all("--index-for" in step or step.startswith("export") for step in steps[:end])
+    return steps[:end]
+
+
+def run_steps(steps: list[str], tmp_path: Path, **build_args: str) -> subprocess.CompletedProcess:
+    """STEPS with the build args given (the others at their defaults); prints the index pip
+    would get."""
+    shims = tmp_path / "bin"
+    shims.mkdir(exist_ok=True)
+    python = shims / "python3.11"
+    python.write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')
+    python.chmod(0o755)
+    env = {**os.environ, "PATH": f"{shims}:{os.environ['PATH']}"}
+    for name in ("TORCH", "PIP_EXTRA_INDEX_URL"):
+        env[name] = build_args.get(name, arg_default(name))
+    script = " && ".join([*steps, 'printf "pip: %s\\n" "$PIP_EXTRA_INDEX_URL"'])
+    shell = exec_form(args_of("SHELL")[0])
+    return subprocess.run(
+        [*shell, script], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120
+    )
+
+
+def pip_index(result: subprocess.CompletedProcess) -> str:
+    assert result.returncode == 0, result.stderr
+    return re.fullmatch(r"pip: (.*)\n", result.stdout)[1]
+
+
+@contextlib.contextmanager
+def wheel_index(root: Path, build: str, wheels: list[str]) -> Iterator[str]:
+    """An index like torch's on loopback: URL/torch/ lists WHEELS."""
+    (root / build / "torch").mkdir(parents=True)
+    for name in wheels:
+        (root / build / "torch" / name).write_bytes(b"")
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(root))
+    handler.log_message = lambda *args: None
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/{build}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def wheel(build: str) -> str:
+    return f"torch-2.13.0+{build}-{WHEEL_TAG}-{WHEEL_TAG}-manylinux_2_28_x86_64.whl"
+
+
+def test_the_default_build_is_cpu_from_torchs_cpu_index(tmp_path):
+    assert arg_default("TORCH") == "cpu"
+    assert arg_default("PIP_EXTRA_INDEX_URL") == ""  # torch's index of the chosen build
+    assert pip_index(run_steps(choosing_steps(), tmp_path)) == TORCH_INDEX + "cpu"
+
+
+@pytest.mark.parametrize("build", ["cu126", "cu130", "cu132"])
+def test_a_cuda_build_takes_torchs_index_of_that_build(tmp_path, build):
+    result = run_steps(choosing_steps(), tmp_path, TORCH=build)
+    assert pip_index(result) == TORCH_INDEX + build
+
+
+def test_any_takes_the_cpu_index_first_and_a_mirror_wins(tmp_path):
+    assert pip_index(run_steps(choosing_steps(), tmp_path, TORCH="any")) == TORCH_INDEX + "cpu"
+    mirror = "http://127.0.0.1:8000/cu130"
+    result = run_steps(choosing_steps(), tmp_path, TORCH="cu130", PIP_EXTRA_INDEX_URL=mirror)
+    assert pip_index(result) == mirror
+
+
+@pytest.mark.parametrize("bad", ["gpu", "cuda", "cu999", "CPU", ""])
+def test_a_bad_build_stops_the_build_with_one_line_naming_the_builds(tmp_path, bad):
+    result = run_steps(torch_steps(), tmp_path, TORCH=bad)  # all of them: it stops first
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.startswith(f"error: --build-arg TORCH={bad}: ")
+    for build in ("cpu", "cu126", "cu130", "cu132", "any"):
+        assert re.search(rf"\b{build}\b", result.stderr), build
+
+
+def test_the_chosen_build_is_checked_on_its_index(tmp_path):
+    with wheel_index(tmp_path / "index", "cu130", [wheel("cu130")]) as url:
+        ok = run_steps(torch_steps(), tmp_path, TORCH="cu130", PIP_EXTRA_INDEX_URL=url)
+        assert pip_index(ok) == url
+        # the CPU build asked of an index that has only CUDA wheels: one line, no install
+        cpu = run_steps(torch_steps(), tmp_path, PIP_EXTRA_INDEX_URL=url)
+        assert cpu.returncode == 1 and cpu.stdout == ""
+        assert cpu.stderr.count("\n") == 1
+        assert "torch's CPU build is asked for (TORCH=cpu)" in cpu.stderr
+        assert "has no torch-2.13.0+cpu wheel" in cpu.stderr
+        other = run_steps(torch_steps(), tmp_path, TORCH="cu126", PIP_EXTRA_INDEX_URL=url)
+        assert other.returncode == 1 and "has no torch-2.13.0+cu126 wheel" in other.stderr
+        anything = run_steps(torch_steps(), tmp_path, TORCH="any", PIP_EXTRA_INDEX_URL=url)
+        assert pip_index(anything) == url  # any: nothing checked
+
+
+def test_the_installed_torch_is_checked_against_the_build():
+    run = next(r for r in args_of("RUN") if "scripts/setup-venv.sh" in r)
+    steps = [step.strip() for step in run.split(" && ")]
+    install = next(i for i, step in enumerate(steps) if "setup-venv.sh" in step)
+    installed = [i for i, step in enumerate(steps) if '--torch "$TORCH" --installed' in step]
+    assert installed and installed[0] > install, steps
+
+
+def test_the_gpu_image_needs_no_cuda_base_and_gets_the_drivers_compute_libraries():
+    # the CUDA wheels carry their runtime: both images start from the same Python base
+    assert all(f.split()[0] == "${BASE}" for f in args_of("FROM"))
+    env = " ".join(args_of("ENV"))
+    capabilities = re.search(r"NVIDIA_DRIVER_CAPABILITIES=(\S+)", env)
+    assert capabilities and set(capabilities[1].split(",")) >= {"compute", "utility"}
+    readme = (ROOT / "deploy/README.md").read_text()
+    for needed in ("--gpus all", "NVIDIA Container Toolkit", "--device cuda"):
+        assert needed in readme, needed

@@ -12,8 +12,8 @@ from rollout.specs import log_prob_size, spec_to_dict, step_spec
 
 VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
 GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
-IMAGE = ObservationSpec(
-    (3, 12, 12),
+IMAGE = ObservationSpec(  # the default (simple) encoder's smallest image
+    (3, 20, 20),
     (
         DimensionProperty.NONE,
         DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,

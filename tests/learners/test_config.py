@@ -82,6 +82,7 @@ behaviors:
 """
 
 UNITYSIM_BEHAVIORS = {
+    "AnimalArena": {"AnimalArena"},
     "3DBall": {"3DBall"},
     "Basic": {"Basic"},
     "GridWorld": {"GridWorld"},
@@ -276,6 +277,11 @@ def test_numbers_as_yaml_leaves_them() -> None:
         ("{hyperparameters: [1, 2]}", "behaviors.3DBall.hyperparameters:", "mapping"),
         ("{reward_signals: {extrinsc: {}}}", "behaviors.3DBall.reward_signals.extrinsc:", "'extr"),
         ("{max_steps: .nan}", "behaviors.3DBall.max_steps:", ""),
+        (
+            "{network_settings: {vis_encode_type: cnn}}",
+            "behaviors.3DBall.network_settings.vis_encode_type:",
+            "expected one of simple, nature_cnn, resnet, match3, fully_connected, got 'cnn'",
+        ),
     ],
 )
 def test_bad_values_name_their_key(section: str, start: str, detail: str) -> None:
@@ -342,12 +348,10 @@ torch_settings: {device: cpu}
     assert set(config.unsupported) == {
         "env_settings",
         "checkpoint_settings",
-        "torch_settings",
         "default_settings.threaded",
         "behaviors.Pyramids.init_path",
         "behaviors.Pyramids.self_play",
         "behaviors.Pyramids.behavioral_cloning",
-        "behaviors.Pyramids.network_settings.vis_encode_type",
         "behaviors.Pyramids.network_settings.memory",
         "behaviors.Pyramids.reward_signals.curiosity",
         "behaviors.Pyramids.reward_signals.rnd",
@@ -361,6 +365,21 @@ torch_settings: {device: cpu}
     assert dict(config.environment_parameters) == {"mass": 1.5, "scale": 1.0}
     assert dict(config.engine) == {"time_scale": 20.0, "width": 84, "no_graphics": True}
     assert config.for_behavior("Pyramids").gamma == 0.99
+    assert config.for_behavior("Pyramids").network_settings.vis_encode_type == "resnet"
+
+
+@pytest.mark.parametrize("kind", ["simple", "nature_cnn", "resnet", "match3", "fully_connected"])
+def test_every_visual_encoder_type_loads(kind: str) -> None:
+    config = parse_config(
+        {
+            "default_settings": {"network_settings": {"vis_encode_type": kind}},
+            "behaviors": {"GridWorld": {"network_settings": {"hidden_units": 64}}},
+        }
+    )
+    assert config.unsupported == ()
+    settings = config.for_behavior("GridWorld?team=0").network_settings
+    assert settings == NetworkSettings(hidden_units=64, vis_encode_type=kind)
+    assert defaults().network_settings.vis_encode_type == "simple"
 
 
 def test_load_config_file_errors(tmp_path: Path) -> None:

@@ -11,11 +11,12 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
-from mlagents_envs.base_env import ActionSpec, BehaviorSpec
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
 from learners import checkpoint
 from learners.acting import ACTION_CLIP, NetworkSettings
 from learners.checkpoint import network_settings_dict, spec_to_dict
+from learners.config_keys import VIS_ENCODE_TYPES
 from learners.export import export_checkpoint, export_onnx
 from learners.policies import ActorCritic
 from rollout import cli
@@ -28,6 +29,7 @@ SPECS = {
     "image": BehaviorSpec([IMAGE, VECTOR], ActionSpec(1, (4,))),
 }
 SETTINGS = NetworkSettings(hidden_units=32, num_layers=2, normalize=True)
+CAMERA = ObservationSpec((3, 40, 40), IMAGE.dimension_property, IMAGE.observation_type, "cam")
 
 
 def observations(spec: BehaviorSpec, n: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -38,10 +40,12 @@ def observations(spec: BehaviorSpec, n: int, seed: int = 0) -> dict[str, np.ndar
     }
 
 
-def build_network(spec: BehaviorSpec, seed: int = 0) -> ActorCritic:
+def build_network(
+    spec: BehaviorSpec, seed: int = 0, settings: NetworkSettings = SETTINGS
+) -> ActorCritic:
     """Heads with large weights (so clipping and argmax matter) and shifted statistics."""
     torch.manual_seed(seed)
-    network = ActorCritic(spec, SETTINGS)
+    network = ActorCritic(spec, settings)
     with torch.no_grad():
         for head in (network.mean, network.logits):
             if head is not None:
@@ -235,6 +239,44 @@ def test_export_checkpoint_writes_one_file_per_behavior(tmp_path):
     elsewhere = export_checkpoint(path, tmp_path / "out")
     assert sorted(p.name for p in elsewhere) == ["3DBall_team=0.onnx", "Grid_team=0.onnx"]
     assert all(p.parent == tmp_path / "out" for p in elsewhere)
+
+
+@pytest.mark.parametrize("kind", VIS_ENCODE_TYPES)
+def test_every_visual_encoder_exports_and_round_trips_a_checkpoint(tmp_path, kind):
+    """A 40x40 camera (above every type's minimum) through each encoder: the checkpoint
+    keeps the type, and onnxruntime acts as torch does."""
+    spec = BehaviorSpec([CAMERA, VECTOR], ActionSpec(1, (4,)))
+    settings = NetworkSettings(hidden_units=32, num_layers=1, vis_encode_type=kind)
+    network = build_network(spec, seed=4, settings=settings)
+    entry = {
+        "spec": spec_to_dict(spec),
+        "network_settings": network_settings_dict(settings),
+        "network": network.state_dict(),
+        "algorithm": {},
+    }
+    state = {"step": 1, "version": 1, "meta": {}, "behaviors": {"Cam?team=0": entry}}
+    path = checkpoint.save(tmp_path / "checkpoints" / "step_1.pt", state)
+    rebuilt = checkpoint.networks(checkpoint.load(path))["Cam?team=0"]
+    assert rebuilt.settings == settings and rebuilt.settings.vis_encode_type == kind
+    assert all(torch.equal(v, rebuilt.state_dict()[k]) for k, v in network.state_dict().items())
+    (exported,) = export_checkpoint(path, tmp_path / "onnx")
+    model = onnx.load(str(exported))
+    dims = [d.dim_param or d.dim_value for d in model.graph.input[0].type.tensor_type.shape.dim]
+    assert dims == ["batch", 3, 40, 40]
+    sess = session(exported)
+    for n in (1, 6):
+        obs = observations(spec, n, seed=n)
+        obs["cam"] = np.random.default_rng(n).random((n, 3, 40, 40), dtype=np.float32)
+        mask = masks(spec, n, seed=n)
+        out = run(sess, feeds(spec, obs, mask))
+        continuous, discrete = torch_deterministic(network, obs, mask)
+        np.testing.assert_allclose(
+            out["deterministic_continuous_actions"], continuous, rtol=0, atol=1e-5
+        )
+        np.testing.assert_array_equal(out["deterministic_discrete_actions"], discrete)
+    # the comparison sees the image: other pixels move the actions well past the tolerance
+    obs["cam"] = np.random.default_rng(99).random((6, 3, 40, 40), dtype=np.float32)
+    assert np.abs(torch_deterministic(network, obs, mask)[0] - continuous).max() > 1e-3
 
 
 def test_cli_export(tmp_path, capsys):

@@ -180,9 +180,13 @@ def test_the_factory_builds_the_same_initial_weights_in_every_process():
     assert all(torch.equal(first[k], again[k]) for k in first)
 
 
-@pytest.mark.parametrize("shape", [(3, 84, 84), (3, 40, 40), (1, 20, 36), (5, 10, 10), (2, 19, 30)])
-def test_the_torch_free_width_of_an_image_encoder_is_the_cnns(shape):
-    assert encoder_width(shape) == SensorEncoder(shape).size
+@pytest.mark.parametrize("shape", [(3, 84, 84), (3, 40, 40), (1, 20, 36), (8,), (2, 3)])
+@pytest.mark.parametrize("vis_encode_type", ["simple", "resnet"])
+def test_the_torch_free_width_of_an_encoder_is_what_it_gives(shape, vis_encode_type):
+    settings = NetworkSettings(hidden_units=24, vis_encode_type=vis_encode_type)
+    encoder = SensorEncoder(shape, settings)
+    assert encoder_width(shape, settings) == encoder.size
+    assert encoder(torch.rand(2, *shape)).shape == (2, encoder.size)
 
 
 def test_workers_act_with_the_learners_initial_weights_and_ml_agents_initialization():

@@ -16,7 +16,7 @@ from learners.acting import actor_factory
 from rollout import keys
 from rollout.collector import NO_AGENT_STEPS, Collector
 from rollout.restarts import RestartPolicy
-from rollout.specs import step_spec
+from rollout.specs import spec_from_dict, step_spec
 from rollout.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import leak_checked_allocator, trajectories
 
@@ -228,3 +228,27 @@ def test_a_restarted_workers_failed_launch_is_retried_but_a_runs_first_is_final(
         assert restarted.collect(min_steps=1)
     finally:
         restarted.close()
+
+
+def test_cameras_sent_as_png_reach_the_learner_as_uint8(allocator):
+    """GridWorld's camera arrives as PNG: the segments carry it as uint8 0..255 (its
+    palette: 0, 128, 255), its goal signal as float32, through the real protocol."""
+    collector = Collector(
+        UnityConfig("unitysim:GridWorld", seed=2), actor_factory, horizon=8, allocator=allocator
+    )
+    try:
+        segments = collect(collector, 40)
+        assert collector.unity.png_sensors("GridWorld?team=0") == {"CameraSensor"}
+    finally:
+        collector.close()
+    batch = torch.cat(segments)
+    camera, goal = batch[keys.OBS, "CameraSensor"], batch[keys.OBS, "GoalSignal"]
+    assert camera.dtype == torch.uint8 and camera.shape[1:] == (3, 40, 40)
+    assert goal.dtype == torch.float32
+    assert set(camera.unique().tolist()) <= {0, 128, 255} and camera.max() == 255
+    spec = spec_from_dict(batch.get_non_tensor(keys.SPEC))
+    assert (
+        step_spec(spec, {"CameraSensor"})
+        .expand(*batch.batch_size)
+        .is_in(batch.exclude(*keys.METADATA))
+    )

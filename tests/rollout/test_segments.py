@@ -55,3 +55,67 @@ def test_segments_of_a_behavior_concatenate_in_order():
         joined.data[keys.OBS]["vector"],
         np.concatenate([p.data[keys.OBS]["vector"] for p in parts]),
     )
+
+
+def test_png_sensors_are_kept_as_exact_uint8_and_vectors_as_float32():
+    """Unity's PNG images decode to k/255: the worker keeps k (a quarter of the bytes),
+    exactly, and the learner's spec says uint8 for them."""
+    from mlagents_envs.base_env import (
+        ActionSpec,
+        BehaviorSpec,
+        DecisionSteps,
+        DimensionProperty,
+        ObservationSpec,
+        ObservationType,
+        TerminalSteps,
+    )
+
+    from rollout.segments import Decisions, SegmentBuilder
+
+    plain = (DimensionProperty.NONE,)
+    image = (
+        DimensionProperty.NONE,
+        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
+        DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,
+    )
+    spec = BehaviorSpec(
+        [
+            ObservationSpec((3, 5, 4), image, ObservationType.DEFAULT, "Camera"),
+            ObservationSpec((2,), plain, ObservationType.DEFAULT, "Velocity"),
+        ],
+        ActionSpec.create_discrete((3,)),
+    )
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (3, 2, 3, 5, 4)).astype(np.uint8)  # 3 exchanges, 2 agents
+    velocity = rng.normal(size=(3, 2, 2)).astype(np.float32)
+    ids = np.array([4, 9], np.int32)
+    builder = SegmentBuilder("B?team=0", spec, horizon=2, pixel_sensors=frozenset({"Camera"}))
+    no_terminals = TerminalSteps.empty(spec)
+    chosen = Decisions(
+        np.zeros((2, 0), np.float32), np.ones((2, 1), np.int64), np.zeros((2, 1), np.float32)
+    )
+    for t in range(3):
+        decoded = frames[t].astype(np.float32) / np.float32(255.0)  # mlagents' PNG decode
+        decisions = DecisionSteps(
+            [decoded, velocity[t]],
+            np.zeros(2, np.float32),
+            ids,
+            None,
+            np.zeros(2, np.int32),
+            np.zeros(2, np.float32),
+        )
+        builder.observe(decisions, no_terminals)
+        segment = builder.collect()
+        builder.act(decisions, chosen, policy_version=t)
+    assert segment is not None and len(segment) == 4  # two rows of the horizon, 2 steps each
+    obs, nxt = segment.data[keys.OBS], segment.data[keys.NEXT][keys.OBS]
+    assert obs["Camera"].dtype == np.uint8 and nxt["Camera"].dtype == np.uint8
+    assert obs["Velocity"].dtype == np.float32
+    np.testing.assert_array_equal(obs["Camera"][[0, 2]], frames[0])  # packed: agent 4, agent 9
+    np.testing.assert_array_equal(nxt["Camera"][[1, 3]], frames[2])
+    np.testing.assert_array_equal(obs["Velocity"][[0, 2]], velocity[0])
+    batch = segment.to_tensordict()
+    assert step_spec(spec, {"Camera"}).expand(4).is_in(batch.exclude(*keys.METADATA))
+    assert not step_spec(spec).expand(4).is_in(batch.exclude(*keys.METADATA))
+    image_bytes = obs["Camera"].nbytes + nxt["Camera"].nbytes
+    assert image_bytes * 4 == 2 * 4 * 3 * 5 * 4 * 4  # float32 would be 4x

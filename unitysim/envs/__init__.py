@@ -14,6 +14,8 @@ _ENTRIES: dict[str, str] = {
     "3DBall": "unitysim.envs.ball3d:Ball3D",
     "Basic": "unitysim.envs.basic:Basic",
     "GridWorld": "unitysim.envs.gridworld:GridWorld",
+    # a first-person camera over walled arenas with food, AnimalAI-like
+    "AnimalArena": "unitysim.envs.animal_arena:AnimalArena",
     # spec-faithful to the reference dumps, with simple learnable rewards
     "StrikersVsGoalie": "unitysim.envs.strikers:StrikersVsGoalie",
     "SoccerTwos": "unitysim.envs.soccer:SoccerTwos",

@@ -1,0 +1,164 @@
+"""Learner update throughput: samples per second of PPO updates, per network and device.
+
+Two networks: 3DBall's MLP (``config/3DBall.yaml``: 8 floats in, 2 continuous actions)
+and an 84x84x3 camera plus a 3-float velocity with discrete actions (3, 3), AnimalAI's
+shape (``config/AnimalArena.yaml``, ML-Agents' ``simple`` encoder; ``--encoders`` adds
+others). Each runs on the CPU and, where this machine has one, on the GPU (``--devices``),
+with and without mixed precision (``--mixed-precision``), in interleaved rounds; each
+keeps its best round (other load only ever slows a run down).
+
+The learner is the real ``CentralLearner`` in this process (no Ray, no Unity): synthetic
+segments of the behavior's spec (uint8 cameras, as workers send them) fill its buffer,
+and the update they trigger is timed. "samples/s" is the steps an update trains on per
+second of update (each of them ``num_epoch`` times), as ``docs/benchmarks.md`` reports it.
+
+    .venv/bin/python benchmarks/bench_learner.py --rounds 2 [--devices cpu cuda] [--json F]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from machine import machine  # benchmarks/machine.py
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
+from mlagents_envs.base_env import ObservationType as Obs
+
+from learners.config import CONFIG_DIR, RunConfig, load_config
+from learners.devices import Compute
+from learners.learner import CentralLearner
+from rollout import keys
+from rollout.specs import spec_to_dict, step_spec
+
+PLAIN = (DimensionProperty.NONE,)
+IMAGE = (DimensionProperty.NONE, *(DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,) * 2)
+CASES: dict[str, tuple[BehaviorSpec, str, frozenset[str]]] = {
+    "3DBall MLP": (
+        BehaviorSpec([ObservationSpec((8,), PLAIN, Obs.DEFAULT, "vector")], ActionSpec(2, ())),
+        "3DBall.yaml",
+        frozenset(),
+    ),
+    "84x84x3 CNN": (
+        BehaviorSpec(
+            [
+                ObservationSpec((3, 84, 84), IMAGE, Obs.DEFAULT, "CameraSensor"),
+                ObservationSpec((3,), PLAIN, Obs.DEFAULT, "Velocity"),
+            ],
+            ActionSpec(0, (3, 3)),
+        ),
+        "AnimalArena.yaml",
+        frozenset({"CameraSensor"}),
+    ),
+}
+
+
+def synthetic_segment(spec: BehaviorSpec, pixels: frozenset[str], rows: int, steps: int):
+    """Well-formed packed rows of random data, cut at their last step (a horizon cut)."""
+    n = rows * steps
+    batch = step_spec(spec, pixels).expand(n).rand()
+    cut = torch.zeros(n, 1, dtype=torch.bool)
+    cut[steps - 1 :: steps] = True
+    batch[keys.NEXT, keys.DONE], batch[keys.NEXT, keys.TRUNCATED] = cut, cut.clone()
+    batch[keys.NEXT, keys.TERMINATED] = torch.zeros(n, 1, dtype=torch.bool)
+    if spec.action_spec.discrete_branches:
+        batch[keys.ACTION_MASK] = torch.ones_like(batch[keys.ACTION_MASK])
+    batch[keys.POLICY_VERSION] = torch.zeros(n, dtype=torch.int64)
+    batch[keys.LOG_PROB] = -torch.rand(n, batch[keys.LOG_PROB].shape[-1])
+    batch.set_non_tensor(keys.BEHAVIOR, "B?team=0")
+    batch.set_non_tensor(keys.SPEC, spec_to_dict(spec))
+    return batch
+
+
+def with_encoder(config: RunConfig, encoder: str) -> RunConfig:
+    behaviors = {
+        name: replace(s, network_settings=replace(s.network_settings, vis_encode_type=encoder))
+        for name, s in config.behaviors.items()
+    }
+    default = replace(
+        config.default,
+        network_settings=replace(config.default.network_settings, vis_encode_type=encoder),
+    )
+    return replace(config, behaviors=behaviors, default=default)
+
+
+def measure(case: str, encoder: str, compute: Compute, updates: int) -> dict[str, float]:
+    spec, config_file, pixels = CASES[case]
+    config = load_config(CONFIG_DIR / config_file)
+    settings = next(iter(config.behaviors.values()))  # the file's one behavior
+    config = with_encoder(replace(config, behaviors={"B": settings}), encoder)
+    learner = CentralLearner(config, compute=compute)
+    rows, steps = 16, settings.time_horizon
+    segments = [synthetic_segment(spec, pixels, rows, steps) for _ in range(4)]
+    per_update = settings.hyperparameters.buffer_size // (rows * steps) + 1
+    learner.submit([segments[0]])  # builds the network; warms up
+    while learner.stats.updates < 1:
+        learner.submit(segments[:1])
+    started, samples0 = time.perf_counter(), learner.stats.samples
+    seconds0 = learner.stats.update_seconds
+    for index in range(updates * per_update):
+        learner.submit([segments[index % len(segments)]])
+    if compute.device != "cpu":
+        torch.cuda.synchronize()
+    return {
+        "samples_per_s": (learner.stats.samples - samples0)
+        / (learner.stats.update_seconds - seconds0),
+        "seconds": time.perf_counter() - started,
+        "epochs": settings.hyperparameters.num_epoch,
+        "buffer_size": settings.hyperparameters.buffer_size,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--updates", type=int, default=2, help="timed updates per run")
+    parser.add_argument("--devices", nargs="+", default=None, help="default: cpu, and cuda if any")
+    parser.add_argument("--encoders", nargs="+", default=["simple"])
+    parser.add_argument("--mixed-precision", action="store_true", help="also runs with it on")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (CPU)")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    devices = args.devices or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    variants = [
+        (case, encoder if case != "3DBall MLP" else "-", device, mixed)
+        for case in CASES
+        for encoder in (args.encoders if case != "3DBall MLP" else ["simple"])
+        for device in devices
+        for mixed in ([False, True] if args.mixed_precision else [False])
+    ]
+    runs: dict[str, list[float]] = {}
+    for _ in range(args.rounds):
+        for case, encoder, device, mixed in variants:
+            name = f"{case} | {encoder} | {device}{' bf16' if mixed else ''}"
+            compute = Compute.of(device, mixed)
+            result = measure(case, encoder if encoder != "-" else "simple", compute, args.updates)
+            runs.setdefault(name, []).append(result["samples_per_s"])
+            print(f"{name}: {result['samples_per_s']:,.0f} samples/s", flush=True)
+    best = {name: max(values) for name, values in runs.items()}
+    results = {
+        "machine": machine(),
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+        "runs": runs,
+        "best": best,
+    }
+    print(json.dumps(results, indent=2))
+    print("\n| network | encoder | device | samples/s (best) | vs the CPU |")
+    print("|---|---|---|---|---|")
+    for name, value in best.items():
+        case, encoder, device = name.split(" | ")
+        cpu = best.get(f"{case} | {encoder} | cpu")
+        ratio = f"{value / cpu:.1f}x" if cpu else "-"
+        print(f"| {case} | {encoder} | {device} | {value:,.0f} | {ratio} |")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

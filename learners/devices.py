@@ -1,0 +1,110 @@
+"""Where the learner computes: its device and whether it uses mixed precision.
+
+The choice comes from ``--device`` or the trainer config's ``torch_settings.device``
+(ML-Agents' key): ``auto`` (a GPU when Ray gives the learner one), ``cpu``, ``cuda`` or
+``cuda:N``. The driver only decides whether the learner actor asks Ray for a GPU
+(``learner_device``), without torch; the learner's process resolves the device
+(``Compute.of``). Workers always act on CPU, and the learner publishes CPU weights.
+
+Batches go to the device once per update (pinned first, so the copy is asynchronous);
+with ``mixed_precision`` the image encoders run in bfloat16 autocast, which needs no loss
+scaling, and everything after them in float32.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import torch
+    from tensordict import TensorDictBase
+
+DEVICES = "auto, cpu, cuda or cuda:N"
+_DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")
+
+
+class DeviceError(ValueError):
+    """A device that cannot be had; its message is one line naming what to change."""
+
+
+def check_device(value: object, what: str = "--device") -> str:
+    """``value`` if it names a device we accept, else a one-line ``DeviceError``."""
+    if not isinstance(value, str) or not _DEVICE.fullmatch(value):
+        raise DeviceError(f"{what}: {value!r} is not a device; use {DEVICES}")
+    return value
+
+
+def learner_device(device: str, cluster_gpus: float) -> str:
+    """The device the learner actor gets: ``cpu``, or a GPU one, for which it asks Ray for
+    a GPU. ``cuda``/``cuda:N`` on a cluster without a GPU is an error (raised in the
+    driver, before any worker starts); ``auto`` takes a GPU when the cluster has one."""
+    check_device(device)
+    if device.startswith("cuda") and cluster_gpus < 1:
+        raise DeviceError(
+            f"--device {device}: the Ray cluster has no GPU (ray.cluster_resources() "
+            "lists none); use --device cpu or auto, or add a GPU node"
+        )
+    return "cpu" if device == "auto" and cluster_gpus < 1 else device
+
+
+@dataclass(frozen=True)
+class Compute:
+    """The learner's device (a torch device string) and mixed precision."""
+
+    device: str = "cpu"
+    mixed_precision: bool = False
+
+    @classmethod
+    def of(cls, device: str = "auto", mixed_precision: bool = False) -> Compute:
+        """Resolve ``device`` in the learner's process (under Ray: among the GPUs Ray gave
+        it, which it numbers from 0)."""
+        import torch
+
+        check_device(device)
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        if device.startswith("cuda"):
+            count = torch.cuda.device_count()
+            index = int(device.partition(":")[2] or 0)
+            if index >= count:
+                raise DeviceError(
+                    f"--device {device}: this process sees {count} CUDA device(s); use "
+                    "cpu, auto or a cuda:N below that"
+                )
+        return cls(device, mixed_precision)
+
+    @property
+    def torch_device(self) -> torch.device:
+        import torch
+
+        return torch.device(self.device)
+
+    def to_device(self, batch: TensorDictBase) -> TensorDictBase:
+        """One copy of an update's batch to the device; pinned, so it is asynchronous."""
+        if self.device == "cpu":
+            return batch
+        return batch.pin_memory().to(self.device, non_blocking=True)
+
+    def autocast(self) -> Any:
+        """bfloat16 autocast on the device when mixed precision is on (else a no-op)."""
+        import torch
+
+        return torch.autocast(
+            self.torch_device.type, dtype=torch.bfloat16, enabled=self.mixed_precision
+        )
+
+
+def to_cpu(tree: Any) -> Any:
+    """Tensors of a nested state (dicts, lists, tuples) on the CPU: checkpoints and the
+    driver, which has no GPU, read them."""
+    import torch
+
+    if isinstance(tree, torch.Tensor):
+        return tree.cpu()
+    if isinstance(tree, dict):
+        return {key: to_cpu(value) for key, value in tree.items()}
+    if isinstance(tree, list | tuple):
+        return type(tree)(to_cpu(value) for value in tree)
+    return tree

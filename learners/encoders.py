@@ -1,0 +1,184 @@
+"""Image encoders by ``network_settings.vis_encode_type``: ML-Agents' five architectures.
+
+Every type ends, as ML-Agents' do, in one dense layer to ``hidden_units`` (weights
+``kaiming_normal`` with a linear gain, times 1.41; zero bias), so an image sensor's encoded
+width is ``hidden_units`` whatever its size. Convolutions keep torch's default
+initialization, as ML-Agents' do. Each type has a smallest side its layers accept
+(``MIN_SIZE``, ML-Agents' ``MIN_RESOLUTION_FOR_ENCODER``); a smaller image is a one-line
+:class:`ImageTooSmall` naming the sensor, its size and what would fit.
+
+Inputs are ``[..., C, H, W]``, float in [0, 1] or uint8 in [0, 255] (a player's PNG as
+stored); uint8 becomes float / 255 here, on the input's device.
+Owned here: the architectures and their minimum sizes. Not owned: vector sensors and the
+trunks (``learners.policies``), the config check of the type name (``learners.config_keys``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from learners.config_keys import VIS_ENCODE_TYPES
+
+__all__ = ["MIN_SIZE", "ImageTooSmall", "VisualEncoder", "check_size", "visual_encoder"]
+
+# smallest height and width each type's layers accept (ML-Agents' values)
+MIN_SIZE: dict[str, int] = {
+    "simple": 20,
+    "nature_cnn": 36,
+    "resnet": 15,
+    "match3": 5,
+    "fully_connected": 1,
+}
+assert tuple(MIN_SIZE) == VIS_ENCODE_TYPES, "every configurable type has a minimum"
+DENSE_GAIN = 1.41  # ML-Agents' ReLU gain on the encoders' dense layer
+
+
+class ImageTooSmall(ValueError):
+    """An image sensor smaller than its encoder's minimum; the message is one line."""
+
+
+def check_size(sensor: str, shape: tuple[int, ...], encoder_type: str) -> None:
+    """Raise :class:`ImageTooSmall` when ``shape`` ``(C, H, W)`` is below the type's minimum,
+    naming the types that would take it (so the fix is in the message)."""
+    if encoder_type not in MIN_SIZE:
+        raise ValueError(
+            f"vis_encode_type: expected one of {', '.join(MIN_SIZE)}, got {encoder_type!r}"
+        )
+    _, height, width = shape
+    minimum = MIN_SIZE[encoder_type]
+    if min(height, width) >= minimum:
+        return
+    fitting = [t for t, size in MIN_SIZE.items() if size <= min(height, width)]
+    fix = f"use vis_encode_type {' or '.join(fitting)}, or " if fitting else "use "
+    raise ImageTooSmall(
+        f"sensor {sensor} is {height}x{width}, below {encoder_type}'s minimum of "
+        f"{minimum}x{minimum}: {fix}a larger image"
+    )
+
+
+def _conv_side(side: int, kernel: int, stride: int, padding: int = 0) -> int:
+    return (side + 2 * padding - kernel) // stride + 1
+
+
+def _dense(width: int, out: int) -> nn.Linear:
+    """ML-Agents' encoder head: kaiming_normal (linear gain) x 1.41, zero bias."""
+    layer = nn.Linear(width, out)
+    nn.init.kaiming_normal_(layer.weight, nonlinearity="linear")
+    with torch.no_grad():
+        layer.weight.mul_(DENSE_GAIN)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class ResidualBlock(nn.Module):
+    """x + conv(swish(conv(swish(x)))), both 3x3 stride 1 padded: the shape is kept."""
+
+    def __init__(self, channels: int) -> None:
+        super().__init__()
+        self.layers = nn.Sequential(
+            nn.SiLU(),
+            nn.Conv2d(channels, channels, 3, 1, padding=1),
+            nn.SiLU(),
+            nn.Conv2d(channels, channels, 3, 1, padding=1),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.layers(x)
+
+
+class VisualEncoder(nn.Module):
+    """``body`` (convolutions, or nothing), flattened, then the dense head and its
+    activation. Folds any leading axes beyond the batch (``[B, T, C, H, W]``)."""
+
+    def __init__(self, body: nn.Module, flat: int, out: int, activation: nn.Module) -> None:
+        super().__init__()
+        self.body, self.flat, self.size = body, flat, out
+        self.dense = _dense(flat, out)
+        self.activation = activation
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.dtype == torch.uint8:
+            x = x.to(torch.float32) / 255.0
+        if x.dim() > 4:
+            lead = x.shape[:-3]
+            return self.forward(x.reshape(-1, *x.shape[-3:])).reshape(*lead, -1)
+        return self.activation(self.dense(torch.flatten(self.body(x), 1)))
+
+
+def _simple(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+    """8x8/4 to 16 maps, 4x4/2 to 32, leaky ReLUs; dense, leaky ReLU."""
+    body = nn.Sequential(
+        nn.Conv2d(channels, 16, 8, 4),
+        nn.LeakyReLU(),
+        nn.Conv2d(16, 32, 4, 2),
+        nn.LeakyReLU(),
+    )
+    sides = [_conv_side(_conv_side(s, 8, 4), 4, 2) for s in (height, width)]
+    return VisualEncoder(body, 32 * math.prod(sides), out, nn.LeakyReLU())
+
+
+def _nature_cnn(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+    """DQN's: 8x8/4 to 32, 4x4/2 to 64, 3x3/1 to 64, leaky ReLUs; dense, leaky ReLU."""
+    body = nn.Sequential(
+        nn.Conv2d(channels, 32, 8, 4),
+        nn.LeakyReLU(),
+        nn.Conv2d(32, 64, 4, 2),
+        nn.LeakyReLU(),
+        nn.Conv2d(64, 64, 3, 1),
+        nn.LeakyReLU(),
+    )
+    sides = [_conv_side(_conv_side(_conv_side(s, 8, 4), 4, 2), 3, 1) for s in (height, width)]
+    return VisualEncoder(body, 64 * math.prod(sides), out, nn.LeakyReLU())
+
+
+def _match3(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+    """For small boards: 3x3/1 to 35, 3x3/1 to 144, leaky ReLUs; dense, leaky ReLU."""
+    body = nn.Sequential(
+        nn.Conv2d(channels, 35, 3, 1),
+        nn.LeakyReLU(),
+        nn.Conv2d(35, 144, 3, 1),
+        nn.LeakyReLU(),
+    )
+    sides = [s - 4 for s in (height, width)]
+    return VisualEncoder(body, 144 * math.prod(sides), out, nn.LeakyReLU())
+
+
+def _resnet(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+    """IMPALA's: three stacks (16, 32, 32 maps) of a padded 3x3 conv, a 3x3/2 max-pool and
+    two residual blocks; swish; dense, ReLU."""
+    layers: list[nn.Module] = []
+    last = channels
+    for maps in (16, 32, 32):
+        layers += [nn.Conv2d(last, maps, 3, 1, padding=1), nn.MaxPool2d(3, 2)]
+        layers += [ResidualBlock(maps), ResidualBlock(maps)]
+        height, width = _conv_side(height, 3, 2), _conv_side(width, 3, 2)
+        last = maps
+    layers.append(nn.SiLU())
+    return VisualEncoder(nn.Sequential(*layers), last * height * width, out, nn.ReLU())
+
+
+def _fully_connected(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+    """No convolution: every pixel into the dense layer, leaky ReLU."""
+    return VisualEncoder(nn.Identity(), channels * height * width, out, nn.LeakyReLU())
+
+
+_BUILDERS = {
+    "simple": _simple,
+    "nature_cnn": _nature_cnn,
+    "resnet": _resnet,
+    "match3": _match3,
+    "fully_connected": _fully_connected,
+}
+
+
+def visual_encoder(
+    shape: tuple[int, ...], encoder_type: str, out: int, sensor: str = "image"
+) -> VisualEncoder:
+    """The ``encoder_type`` encoder of ``(C, H, W)`` images to ``out`` features (its
+    weights from torch's random stream); :class:`ImageTooSmall` below the minimum."""
+    check_size(sensor, shape, encoder_type)
+    channels, height, width = shape
+    return _BUILDERS[encoder_type](channels, height, width, out)

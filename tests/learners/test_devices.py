@@ -1,0 +1,151 @@
+"""The learner's device plumbing, as far as it goes on a machine without a GPU.
+
+A CUDA run cannot happen here, so the update paths are run with torch's default device set
+to ``meta``: every tensor the learner creates without naming a device then lands on
+``meta``, and the first operation mixing it with the network's tensors fails. That is the
+bug a GPU learner would hit (a tensor left on the CPU), found on the CPU.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec
+
+from learners.config import ConfigError, parse_config
+from learners.devices import Compute, DeviceError, check_device, learner_device, to_cpu
+from learners.learner import CentralLearner
+from rollout import keys
+from tests.learners.fakes import IMAGE, VECTOR, segment
+
+
+def test_device_names_are_checked_in_one_line():
+    for good in ("auto", "cpu", "cuda", "cuda:1"):
+        assert check_device(good) == good
+    for bad in ("gpu", "cuda:", "CUDA", "cuda:x", 3):
+        with pytest.raises(DeviceError, match=r"^--device: .* use auto, cpu, cuda or cuda:N$"):
+            check_device(bad)
+
+
+def test_the_driver_asks_a_gpu_only_where_one_is_and_refuses_cuda_without_one():
+    assert learner_device("auto", 0) == "cpu"
+    assert learner_device("auto", 2) == "auto"  # resolved in the actor, on Ray's GPU
+    assert learner_device("cpu", 4) == "cpu"
+    assert learner_device("cuda:0", 1) == "cuda:0"
+    with pytest.raises(DeviceError) as error:
+        learner_device("cuda", 0)
+    message = str(error.value)
+    assert "\n" not in message and "no GPU" in message and "--device cpu" in message
+
+
+def test_the_learner_process_resolves_its_device():
+    gpus = torch.cuda.device_count()
+    assert Compute.of("cpu") == Compute("cpu")
+    assert Compute.of("auto").device == ("cuda" if gpus else "cpu")
+    with pytest.raises(DeviceError, match=f"sees {gpus} CUDA device"):
+        Compute.of(f"cuda:{gpus}")  # one past the last
+
+
+def test_torch_settings_device_is_mlagents_key_and_checked():
+    assert parse_config({"torch_settings": {"device": "cuda:0"}}).torch_device == "cuda:0"
+    assert parse_config({"torch_settings": {"device": None}}).torch_device is None
+    assert parse_config({}).torch_device is None
+    with pytest.raises(ConfigError, match=r"^torch_settings.device: 'tpu' is not a device"):
+        parse_config({"torch_settings": {"device": "tpu"}})
+    with pytest.raises(ConfigError, match="torch_settings"):
+        parse_config({"torch_settings": {"devise": "cpu"}})
+
+
+def behaviors() -> list[tuple[str, BehaviorSpec]]:
+    return [
+        ("ppo", BehaviorSpec([VECTOR], ActionSpec(2, (3,)))),
+        ("ppo", BehaviorSpec([IMAGE, VECTOR], ActionSpec(0, (3, 3)))),
+        ("impala", BehaviorSpec([VECTOR], ActionSpec(2, ()))),
+        ("sac", BehaviorSpec([VECTOR], ActionSpec(2, ()))),
+        ("sac", BehaviorSpec([IMAGE], ActionSpec(0, (4,)))),
+    ]
+
+
+@pytest.mark.parametrize(("trainer", "spec"), behaviors())
+def test_every_update_creates_its_tensors_on_the_networks_device(trainer, spec):
+    hyper = {"batch_size": 16, "buffer_size": 48}
+    if trainer == "sac":
+        hyper |= {"buffer_init_steps": 0, "steps_per_update": 8}
+    config = parse_config({"behaviors": {"B": {"trainer_type": trainer, "hyperparameters": hyper}}})
+    learner = CentralLearner(config, compute=Compute("cpu"))
+    learner.submit([segment(spec, 1, 4, behavior="B?team=0")])  # builds the network, on cpu
+    data = segment(spec, 4, 16, behavior="B?team=0", seed=1)
+    before = learner.version
+    with torch.device("meta"):  # a tensor made without a device would land here
+        learner.submit([data])
+    assert learner.version > before  # an update ran, every tensor on the network's device
+    state = learner.state_dict()
+    assert all(t.device.type == "cpu" for t in state["behaviors"]["B?team=0"]["network"].values())
+
+
+def test_weights_are_copied_once_per_version():
+    spec = BehaviorSpec([VECTOR], ActionSpec(2, ()))
+    config = parse_config(
+        {"behaviors": {"B": {"hyperparameters": {"buffer_size": 32, "batch_size": 16}}}}
+    )
+    learner = CentralLearner(config)
+    learner.submit([segment(spec, 1, 8, behavior="B?team=0")])
+    version, first = learner.weights()
+    assert learner.weights()[1] is first  # the same copy for every worker that asks
+    learner.submit([segment(spec, 2, 16, behavior="B?team=0", seed=2)])  # an update
+    newer, second = learner.weights()
+    assert newer == version + 1 and second is not first
+    changed = [
+        k for k in first["B?team=0"] if (first["B?team=0"][k] != second["B?team=0"][k]).any()
+    ]
+    assert changed  # the new copy holds the new weights
+
+
+def test_to_cpu_keeps_the_structure():
+    state = {"a": torch.ones(2), "b": [torch.zeros(1), (3, "x")], "c": {"d": torch.tensor(1)}}
+    moved = to_cpu(state)
+    assert moved["b"][1] == (3, "x") and torch.equal(moved["c"]["d"], torch.tensor(1))
+
+
+def test_uint8_images_train_like_their_float_form():
+    """Segments carry PNG cameras as uint8 0..255; the learner's encoder reads them as
+    the float k/255 a worker acted on: the same losses from either form."""
+    spec = BehaviorSpec([IMAGE, VECTOR], ActionSpec(0, (3,)))
+    config = parse_config(
+        {"behaviors": {"B": {"hyperparameters": {"buffer_size": 16, "batch_size": 16}}}}
+    )
+    data = segment(spec, 2, 16, behavior="B?team=0", seed=3)
+    pixels = torch.randint(0, 256, data[keys.OBS, "camera"].shape).float()
+    reports = []
+    for form in (pixels.to(torch.uint8), pixels / 255):
+        batch = data.clone()
+        for key in ((keys.OBS, "camera"), (keys.NEXT, keys.OBS, "camera")):
+            batch.set(key, form, inplace=False)
+        torch.manual_seed(0)
+        learner = CentralLearner(config, seed=5)
+        learner.submit([batch])
+        reports.append(learner.drain_reports()[0][2])
+    assert reports[0]["Losses/Value Loss"] == pytest.approx(reports[1]["Losses/Value Loss"])
+    assert reports[0]["Losses/Policy Loss"] == pytest.approx(reports[1]["Losses/Policy Loss"])
+
+
+@pytest.mark.parametrize("mixed", [False, True])
+def test_mixed_precision_runs_the_image_encoders_in_bfloat16_and_the_rest_in_float32(mixed):
+    spec = BehaviorSpec([IMAGE, VECTOR], ActionSpec(0, (3,)))
+    config = parse_config(
+        {"behaviors": {"B": {"hyperparameters": {"buffer_size": 16, "batch_size": 16}}}}
+    )
+    learner = CentralLearner(config, compute=Compute("cpu", mixed_precision=mixed))
+    learner.submit([segment(spec, 1, 1, behavior="B?team=0")])
+    network = learner.behaviors["B?team=0"].network
+    seen: dict[str, set[torch.dtype]] = {"conv": set(), "trunk": set()}
+    conv = next(m for m in network.encoders[0].modules() if isinstance(m, torch.nn.Conv2d))
+    conv.register_forward_hook(lambda m, i, o: seen["conv"].add(o.dtype))
+    network.trunk.register_forward_pre_hook(lambda m, i: seen["trunk"].add(i[0].dtype))
+    learner.submit([segment(spec, 2, 16, behavior="B?team=0", seed=4)])
+    report = learner.drain_reports()[0][2]
+    # the gradient passes in bfloat16 (GAE's value pass runs under torchrl's vmap, which
+    # autocast does not reach: float32 there, which costs no precision)
+    assert (torch.bfloat16 in seen["conv"]) == mixed and torch.float32 in seen["conv"]
+    assert seen["trunk"] == {torch.float32}
+    assert all(torch.isfinite(torch.tensor(v)) for v in report.values())
