@@ -40,6 +40,7 @@ RUNS = (
     Run("3DBall IMPALA", "unitysim:3DBall", "config/3DBall_impala.yaml", 90.0, 600),
     Run("Basic PPO", "unitysim:Basic", "config/Basic.yaml", 0.9, 600),
     Run("GridWorld PPO", "unitysim:GridWorld", "config/GridWorld.yaml", 0.8, 900),
+    Run("AnimalArena PPO", "unitysim:AnimalArena", "config/AnimalArena.yaml", 0.9, 300),
 )
 
 
