@@ -143,7 +143,7 @@ def main() -> int:
             if "error" not in result and result["curve"]:
                 image = images / ("learning-" + run.name.split()[0] + "-" + run.name.split()[1])
                 plot(result, image.with_suffix(".png"))
-                result["plot"] = str(image.with_suffix(".png").relative_to(ROOT))
+                result["plot"] = str(image.with_suffix(".png"))
             report["runs"].append(result)
             summary = {k: v for k, v in result.items() if k != "curve"}
             print(json.dumps(summary), flush=True)

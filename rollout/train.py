@@ -24,7 +24,6 @@ from pathlib import Path
 from types import FrameType
 from typing import Any, Literal
 
-import psutil
 import ray
 import yaml
 from ray.exceptions import RayActorError
@@ -44,6 +43,7 @@ from rollout.service import (
     ServiceConfig,
     last_line,
 )
+from rollout.startup import first_steps, startup_times
 from rollout.summaries import Summaries, next_multiple
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
 
@@ -344,7 +344,7 @@ def _run(
         progress["steps"] = {name: b["steps"] for name, b in state["behaviors"].items()}
         progress["version"] = state["version"]
         latest = summaries.latest()
-        startup = _startup(_first_steps(service), summaries.first_reward_at)
+        startup = startup_times(first_steps(service), summaries.first_reward_at)
     result = TrainResult(
         run_dir,
         dict(progress["steps"]),
@@ -382,40 +382,6 @@ def _run(
 def _cause(error: Exception) -> str:
     """Ray's last line without its paragraph of generic advice."""
     return last_line(error).split(" Some common causes")[0]
-
-
-def _first_steps(service: RolloutService) -> list[float]:
-    """When each worker's Unity first answered (wall clock), as far as reported."""
-    return [w.first_step_at for w in service.metrics.workers if w.first_step_at is not None]
-
-
-def _startup(first_steps: list[float], first_reward_at: float | None) -> dict[str, float | None]:
-    """Seconds from this process's start to the first environment step and the first
-    summary with a mean reward (what a user waits for before anything happens), and both
-    moments as wall-clock times (for a benchmark that times the launch itself)."""
-    launched = time.time() - _process_age()
-    first_step = min(first_steps, default=None)
-
-    def since(at: float | None) -> float | None:
-        return None if at is None else round(at - launched, 2)
-
-    return {
-        "first_step_s": since(first_step),
-        "first_summary_s": since(first_reward_at),
-        "first_step_at": first_step,
-        "first_summary_at": first_reward_at,
-    }
-
-
-def _process_age() -> float:
-    """Seconds since this process started, to 10 ms. psutil's create_time is off by up to
-    a second on Linux (it adds the boot time, which the kernel gives in whole seconds)."""
-    try:
-        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
-        started = int(fields[19]) / os.sysconf("SC_CLK_TCK")  # since boot
-        return time.clock_gettime(time.CLOCK_BOOTTIME) - started
-    except (OSError, ValueError, IndexError, AttributeError):
-        return time.time() - psutil.Process().create_time()
 
 
 def _plain(value: Any) -> Any:
