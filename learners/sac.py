@@ -21,18 +21,14 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDict
-from tensordict.nn import (
-    ProbabilisticTensorDictModule,
-    ProbabilisticTensorDictSequential,
-    TensorDictModule,
-)
+from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential
 from torch import nn
 from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import TanhNormal
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate
 
 from learners.devices import Compute
-from learners.modules import PolicyParams, obs_keys
+from learners.modules import PolicyParams, TensorModule, obs_keys
 from learners.policies import ActorCritic, SensorEncoder
 from learners.schedules import decay
 from rollout import keys
@@ -121,7 +117,7 @@ class SAC:
         self.network, self.settings = network, settings
         h = settings.hyperparameters
         obs = obs_keys(network)
-        params = TensorDictModule(
+        params = TensorModule(
             PolicyParams(network),
             in_keys=obs,
             out_keys=["loc", "scale"] if network.continuous else ["logits"],
@@ -137,7 +133,7 @@ class SAC:
                 ),
             )
             qs = [
-                TensorDictModule(
+                TensorModule(
                     QNetwork(network, 1, network.continuous),
                     in_keys=[*obs, ACTION],
                     out_keys=["state_action_value"],
@@ -163,9 +159,7 @@ class SAC:
                 ),
             )
             qs = [
-                TensorDictModule(
-                    QNetwork(network, branches[0]), in_keys=obs, out_keys=["action_value"]
-                )
+                TensorModule(QNetwork(network, branches[0]), in_keys=obs, out_keys=["action_value"])
                 for _ in range(2)
             ]
             self.loss = _TargetKeepingDiscreteSACLoss(
