@@ -15,8 +15,6 @@ trunks (``learners.policies``), the config check of the type name (``learners.co
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
@@ -59,10 +57,6 @@ def check_size(sensor: str, shape: tuple[int, ...], encoder_type: str) -> None:
     )
 
 
-def _conv_side(side: int, kernel: int, stride: int, padding: int = 0) -> int:
-    return (side + 2 * padding - kernel) // stride + 1
-
-
 def _dense(width: int, out: int) -> nn.Linear:
     """ML-Agents' encoder head: kaiming_normal (linear gain) x 1.41, zero bias."""
     layer = nn.Linear(width, out)
@@ -93,8 +87,12 @@ class VisualEncoder(nn.Module):
     """``body`` (convolutions, or nothing), flattened, then the dense head and its
     activation. Folds any leading axes beyond the batch (``[B, T, C, H, W]``)."""
 
-    def __init__(self, body: nn.Module, flat: int, out: int, activation: nn.Module) -> None:
+    def __init__(
+        self, body: nn.Module, shape: tuple[int, ...], out: int, activation: nn.Module
+    ) -> None:
         super().__init__()
+        with torch.no_grad():  # the flattened width, from the body itself
+            flat = int(torch.flatten(body(torch.zeros(1, *shape)), 1).shape[1])
         self.body, self.flat, self.size = body, flat, out
         self.dense = _dense(flat, out)
         self.activation = activation
@@ -108,7 +106,7 @@ class VisualEncoder(nn.Module):
         return self.activation(self.dense(torch.flatten(self.body(x), 1)))
 
 
-def _simple(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+def _simple(channels: int) -> tuple[nn.Module, nn.Module]:
     """8x8/4 to 16 maps, 4x4/2 to 32, leaky ReLUs; dense, leaky ReLU."""
     body = nn.Sequential(
         nn.Conv2d(channels, 16, 8, 4),
@@ -116,11 +114,10 @@ def _simple(channels: int, height: int, width: int, out: int) -> VisualEncoder:
         nn.Conv2d(16, 32, 4, 2),
         nn.LeakyReLU(),
     )
-    sides = [_conv_side(_conv_side(s, 8, 4), 4, 2) for s in (height, width)]
-    return VisualEncoder(body, 32 * math.prod(sides), out, nn.LeakyReLU())
+    return body, nn.LeakyReLU()
 
 
-def _nature_cnn(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+def _nature_cnn(channels: int) -> tuple[nn.Module, nn.Module]:
     """DQN's: 8x8/4 to 32, 4x4/2 to 64, 3x3/1 to 64, leaky ReLUs; dense, leaky ReLU."""
     body = nn.Sequential(
         nn.Conv2d(channels, 32, 8, 4),
@@ -130,11 +127,10 @@ def _nature_cnn(channels: int, height: int, width: int, out: int) -> VisualEncod
         nn.Conv2d(64, 64, 3, 1),
         nn.LeakyReLU(),
     )
-    sides = [_conv_side(_conv_side(_conv_side(s, 8, 4), 4, 2), 3, 1) for s in (height, width)]
-    return VisualEncoder(body, 64 * math.prod(sides), out, nn.LeakyReLU())
+    return body, nn.LeakyReLU()
 
 
-def _match3(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+def _match3(channels: int) -> tuple[nn.Module, nn.Module]:
     """For small boards: 3x3/1 to 35, 3x3/1 to 144, leaky ReLUs; dense, leaky ReLU."""
     body = nn.Sequential(
         nn.Conv2d(channels, 35, 3, 1),
@@ -142,11 +138,10 @@ def _match3(channels: int, height: int, width: int, out: int) -> VisualEncoder:
         nn.Conv2d(35, 144, 3, 1),
         nn.LeakyReLU(),
     )
-    sides = [s - 4 for s in (height, width)]
-    return VisualEncoder(body, 144 * math.prod(sides), out, nn.LeakyReLU())
+    return body, nn.LeakyReLU()
 
 
-def _resnet(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+def _resnet(channels: int) -> tuple[nn.Module, nn.Module]:
     """IMPALA's: three stacks (16, 32, 32 maps) of a padded 3x3 conv, a 3x3/2 max-pool and
     two residual blocks; swish; dense, ReLU."""
     layers: list[nn.Module] = []
@@ -154,15 +149,14 @@ def _resnet(channels: int, height: int, width: int, out: int) -> VisualEncoder:
     for maps in (16, 32, 32):
         layers += [nn.Conv2d(last, maps, 3, 1, padding=1), nn.MaxPool2d(3, 2)]
         layers += [ResidualBlock(maps), ResidualBlock(maps)]
-        height, width = _conv_side(height, 3, 2), _conv_side(width, 3, 2)
         last = maps
     layers.append(nn.SiLU())
-    return VisualEncoder(nn.Sequential(*layers), last * height * width, out, nn.ReLU())
+    return nn.Sequential(*layers), nn.ReLU()
 
 
-def _fully_connected(channels: int, height: int, width: int, out: int) -> VisualEncoder:
+def _fully_connected(channels: int) -> tuple[nn.Module, nn.Module]:
     """No convolution: every pixel into the dense layer, leaky ReLU."""
-    return VisualEncoder(nn.Identity(), channels * height * width, out, nn.LeakyReLU())
+    return nn.Identity(), nn.LeakyReLU()
 
 
 _BUILDERS = {
@@ -180,5 +174,5 @@ def visual_encoder(
     """The ``encoder_type`` encoder of ``(C, H, W)`` images to ``out`` features (its
     weights from torch's random stream); :class:`ImageTooSmall` below the minimum."""
     check_size(sensor, shape, encoder_type)
-    channels, height, width = shape
-    return _BUILDERS[encoder_type](channels, height, width, out)
+    body, activation = _BUILDERS[encoder_type](shape[0])
+    return VisualEncoder(body, tuple(shape), out, activation)

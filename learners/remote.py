@@ -29,9 +29,6 @@ class LearnerHost:
         compute = Compute.of(device, mixed_precision)
         self.learner = CentralLearner(config, max_steps, torch_threads, seed, compute)
 
-    def device(self) -> str:
-        return self.learner.compute.device
-
     def prepare(self) -> None:
         self.learner.prepare()
 
