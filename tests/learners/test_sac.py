@@ -5,6 +5,7 @@ and a short in-process run on unitysim 3DBall that clearly beats the random poli
 from __future__ import annotations
 
 import io
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import torch
 from learners.acting import NetworkSettings, NumpyActor, policy_factory
 from learners.config import defaults, load_config
 from learners.policies import ActorCritic, numpy_state
-from learners.sac import MAX_GRADIENT_STEPS, SAC, next_mask
+from learners.sac import MAX_GRADIENT_STEPS, SAC, masked_logits, next_mask
 from rollout import keys
 from rollout.ports import PortRange
 from tests.helpers import train_in_process
@@ -42,6 +43,10 @@ def build(spec, seed: int = 0, gamma: float = 0.99, **hyper: float) -> SAC:
     return SAC(ActorCritic(spec, squashed), trainer)
 
 
+def floats(report: dict[str, torch.Tensor]) -> dict[str, float]:
+    return {key: float(value) for key, value in report.items()}
+
+
 def no_lag(batch) -> torch.Tensor:
     return torch.zeros(batch.batch_size, dtype=torch.int64)
 
@@ -64,10 +69,9 @@ def test_q_losses_fall_on_a_fixed_batch(kind):
     data = segment(spec, 8, 16)
     sac.add(data, no_lag(data))
     batch = sac.buffer.sample()
-    sac.gradient_step(batch.clone())
-    first = sac.q_losses(batch)  # of the batch the last step trained on
+    first = floats(sac.gradient_step(batch.clone()))  # each Q's loss before the step
     for _ in range(150):
-        last = {**sac.gradient_step(batch.clone()), **sac.q_losses(batch)}
+        last = floats(sac.gradient_step(batch.clone()))
     assert last["q1"] < 0.6 * first["q1"] and last["q2"] < 0.6 * first["q2"]
     assert np.isfinite(list(last.values())).all()
 
@@ -92,15 +96,18 @@ def test_masked_actions_are_never_sampled_and_weigh_nothing_in_the_target():
     # even a huge target Q for it leaves the target unchanged (steps whose next state is
     # unmasked, after an episode end or at a row end, do change).
     batch = sac.buffer.sample()
-    dist = sac.actor.get_dist(batch[keys.NEXT])
-    blocked = ~batch[keys.NEXT, keys.ACTION_MASK][:, 3]
-    assert blocked.any() and (~blocked).any()
-    assert (dist.probs[blocked, 3] == 0).all() and (dist.probs[~blocked, 3] > 0).all()
+    nxt = batch[keys.NEXT]
     with torch.no_grad():
-        before = sac.loss._compute_target(batch.clone())
-        bias = sac.loss.target_qvalue_network_params["module", "body", "4", "bias"]
-        bias.data[:, 3] += 100.0
-        after = sac.loss._compute_target(batch.clone())
+        logits = sac.policy(nxt[keys.OBS, "vector"])[0]
+        probs = torch.softmax(masked_logits(logits, nxt[keys.ACTION_MASK]), dim=-1)
+    blocked = ~nxt[keys.ACTION_MASK][:, 3]
+    assert blocked.any() and (~blocked).any()
+    assert (probs[blocked, 3] == 0).all() and (probs[~blocked, 3] > 0).all()
+    alpha = sac.log_alpha.detach().exp()
+    before = sac.target(batch, alpha)
+    for q in sac.q_target:
+        q.body[-1].bias.data[3] += 100.0
+    after = sac.target(batch, alpha)
     torch.testing.assert_close(after[blocked], before[blocked])
     unmasked_next = ~blocked & ~batch[keys.NEXT, keys.TERMINATED][:, 0]
     assert unmasked_next.any() and (after[unmasked_next] > before[unmasked_next]).all()
@@ -143,14 +150,16 @@ def test_state_dict_round_trip(kind):
     other = build(spec, seed=1)  # different initial weights everywhere
     other.network.load_state_dict(saved["network"])
     other.load_state_dict(saved["algorithm"])
-    torch.testing.assert_close(other.loss.state_dict(), sac.loss.state_dict())
-    assert float(other.loss.log_alpha.detach()) == float(sac.loss.log_alpha.detach()) != 0.0
+    torch.testing.assert_close(other.q.state_dict(), sac.q.state_dict())
+    torch.testing.assert_close(other.q_target.state_dict(), sac.q_target.state_dict())
+    initial = math.log(sac.settings.hyperparameters.init_entcoef)
+    assert float(other.log_alpha.detach()) == float(sac.log_alpha.detach()) != initial
     # Same batch, same noise: the next step (optimizer moments included) is identical.
     batch = sac.buffer.sample()
     torch.manual_seed(7)
-    expected = sac.gradient_step(batch.clone())
+    expected = floats(sac.gradient_step(batch.clone()))
     torch.manual_seed(7)
-    got = other.gradient_step(batch.clone())
+    got = floats(other.gradient_step(batch.clone()))
     assert got == pytest.approx(expected, rel=1e-5)
     torch.testing.assert_close(other.network.state_dict(), sac.network.state_dict())
 
@@ -207,3 +216,80 @@ def test_sac_learns_3dball_in_process(tmp_path):
     )
     print("(agent steps, episodes, best mean return):", history)
     assert best >= 10, f"(agent steps, episodes, best mean return): {history}"
+
+
+class _MaskedSoftmax(torch.distributions.Categorical):
+    def __init__(self, logits: torch.Tensor, mask: torch.Tensor) -> None:
+        super().__init__(logits=masked_logits(logits, mask), validate_args=False)
+
+
+def torchrl_loss(sac: SAC):
+    """torchrl's SACLoss / DiscreteSACLoss over the same policy and Q networks: the
+    reference the written-out losses must match."""
+    from tensordict.nn import ProbabilisticTensorDictModule as Prob
+    from tensordict.nn import ProbabilisticTensorDictSequential as Seq
+    from torchrl.data import Bounded
+    from torchrl.modules import TanhNormal
+    from torchrl.objectives import DiscreteSACLoss, SACLoss
+
+    from learners.modules import PolicyParams, TensorModule, obs_keys
+
+    obs = obs_keys(sac.network)
+    net = sac.network
+    if sac.continuous:
+        actor = Seq(
+            TensorModule(PolicyParams(net), in_keys=obs, out_keys=["loc", "scale"]),
+            Prob(in_keys=["loc", "scale"], out_keys=["action"], distribution_class=TanhNormal),
+        )
+        qs = [
+            TensorModule(q, in_keys=[*obs, "action"], out_keys=["state_action_value"])
+            for q in sac.q
+        ]
+        loss = SACLoss(
+            actor,
+            qs,
+            loss_function="l2",
+            alpha_init=sac.settings.hyperparameters.init_entcoef,
+            action_spec=Bounded(-1.0, 1.0, shape=(net.continuous,)),
+        )
+    else:
+        actor = Seq(
+            TensorModule(PolicyParams(net), in_keys=obs, out_keys=["logits"]),
+            Prob(
+                in_keys={"logits": "logits", "mask": keys.ACTION_MASK},
+                out_keys=["action"],
+                distribution_class=_MaskedSoftmax,
+            ),
+        )
+        qs = [TensorModule(q, in_keys=obs, out_keys=["action_value"]) for q in sac.q]
+        loss = DiscreteSACLoss(
+            actor,
+            qs,
+            action_space="categorical",
+            num_actions=net.branches[0],
+            loss_function="l2",
+            alpha_init=sac.settings.hyperparameters.init_entcoef,
+            target_entropy_weight=0.2,
+        )
+    loss.make_value_estimator(gamma=sac.settings.gamma)
+    return loss
+
+
+@pytest.mark.parametrize("kind", ["continuous", "discrete"])
+def test_the_losses_are_torchrls_sac_losses(kind):
+    """The same batch, weights and noise give torchrl's three losses (v2, two Qs, l2;
+    discrete: masked, with episode ends) and the same entropy."""
+    spec = vector_spec(6, continuous=2) if kind == "continuous" else vector_spec(6, branches=(4,))
+    sac = build(spec, gamma=0.9, init_entcoef=0.3)
+    data = segment(spec, 8, 16) if kind == "continuous" else masked_segment(spec)
+    sac.add(data, no_lag(data))
+    reference = torchrl_loss(sac)  # its target Qs: copies of the Qs, as sac.q_target
+    batch = sac.buffer.sample()
+    torch.manual_seed(3)
+    expected = reference(batch.clone())
+    torch.manual_seed(3)
+    got = floats(sac.gradient_step(batch.clone()))
+    assert got["policy"] == pytest.approx(float(expected["loss_actor"]), rel=1e-5)
+    assert got["q1"] + got["q2"] == pytest.approx(float(expected["loss_qvalue"]), rel=1e-5)
+    assert got["alpha_loss"] == pytest.approx(float(expected["loss_alpha"]), rel=1e-5)
+    assert got["entropy"] == pytest.approx(float(expected["entropy"]), rel=1e-5)
