@@ -23,6 +23,7 @@ import torch
 
 from learners import checkpoint
 from learners.acting import base_name, policy_factory
+from learners.counters import LearnerStats, Sources
 from learners.devices import Compute, to_cpu
 from learners.policies import ActorCritic, numpy_state
 from rollout import keys
@@ -86,39 +87,6 @@ class BehaviorState:
     algorithm: Algorithm
     steps: int = 0  # agent steps received (ML-Agents' "Step")
     updates: list[int] = field(default_factory=list)  # global versions this behavior made
-
-
-@dataclass
-class LearnerStats:
-    samples: int = 0  # valid steps consumed by updates
-    update_seconds: float = 0.0
-    submit_seconds: float = 0.0
-    updates: int = 0
-    duplicate_steps: int = 0  # segments delivered twice (Ray retries), taken once
-
-
-class Sources:
-    """The segment sources taken so far, to take each once. Per (incarnation, behavior): the
-    number up to which all were taken, and those taken above it (deliveries come nearly in
-    order, so the set stays small however long the run)."""
-
-    def __init__(self) -> None:
-        self._taken: dict[tuple[str, str], tuple[int, set[int]]] = {}
-
-    def first(self, segment: Segment) -> bool:
-        """Whether this is the first delivery of the segment's source (recording it)."""
-        assert segment.source is not None
-        incarnation, number = segment.source
-        key = (incarnation, segment.behavior)
-        upto, above = self._taken.get(key, (0, set()))
-        if number <= upto or number in above:
-            return False
-        above.add(number)
-        while upto + 1 in above:
-            upto += 1
-            above.discard(upto)
-        self._taken[key] = (upto, above)
-        return True
 
 
 class CentralLearner:

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from learners.counters import on_policy_wanted
 from learners.devices import Compute
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
@@ -47,8 +48,7 @@ class SegmentBuffer:
         return self.steps > self.buffer_size
 
     def wanted(self) -> int:
-        """Steps still missing before the buffer is ready (at least 1)."""
-        return max(self.buffer_size + 1 - self.steps, 1)
+        return on_policy_wanted(self.buffer_size, self.steps)
 
     def take(self, network: ActorCritic, reward_strength: float) -> TensorDict:
         batch = self.compute.to_device(torch.cat(self.segments, dim=0))

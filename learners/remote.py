@@ -1,18 +1,37 @@
 """The central learner as a Ray actor, defined without torch: the driver that starts it
 (``rollout.train``) never loads torch (1.3 s of CPU while Ray starts); the actor's own
-process does, in ``__init__``."""
+process does, on a thread, while it already takes segments.
+
+Why the thread: the learner's process needs seconds of CPU for torch, tensordict and
+torchrl before it can build a network. Workers need none of them and step Unity a second
+after Ray is up; had the learner's actor answered nothing until then, the service would
+hold them back (it keeps a few submissions in flight), and the first summary would wait
+for the learner's imports. So ``LearnerHost`` answers at once: until its
+``CentralLearner`` is built it keeps what arrives (each source once), counts its steps
+for ``progress``, and states an on-policy behavior's demand from the config; a submission
+that fills that demand waits for the learner, and the next one hands everything over
+in order.
+"""
 
 from __future__ import annotations
 
+import threading
 from typing import TYPE_CHECKING, Any
 
+from learners.counters import LearnerStats, Sources, on_policy_wanted
+from rollout import keys
+from rollout.segments import Segment
+
 if TYPE_CHECKING:
+    from tensordict import TensorDict
+
     from learners.config import RunConfig
+    from learners.learner import CentralLearner
 
 
 class LearnerHost:
     """Holds a ``learners.learner.CentralLearner`` (the contract of
-    ``rollout/learner_api.py``) in the actor's process."""
+    ``rollout/learner_api.py``) in the actor's process; builds it on a thread."""
 
     def __init__(
         self,
@@ -23,32 +42,122 @@ class LearnerHost:
         device: str = "cpu",
         mixed_precision: bool = False,
     ) -> None:
-        from learners.devices import Compute
-        from learners.learner import CentralLearner
+        self.config, self.max_steps = config, max_steps
+        self._learner: CentralLearner | None = None
+        self._error: BaseException | None = None
+        self._built = threading.Event()
+        self._lock = threading.Lock()  # the learner's data: submits, flushes, state
+        self._early: list[Any] = []  # segments taken before the learner was built
+        self._early_steps: dict[str, int] = {}  # their steps per behavior
+        self._sources = Sources()
+        self._early_duplicates = 0
+        self._builder = threading.Thread(
+            target=self._build,
+            args=(config, max_steps, torch_threads, seed, device, mixed_precision),
+            daemon=True,
+        )
+        self._builder.start()
 
-        compute = Compute.of(device, mixed_precision)
-        self.learner = CentralLearner(config, max_steps, torch_threads, seed, compute)
+    def _build(self, *args: Any) -> None:
+        try:
+            from learners.devices import Compute
+            from learners.learner import CentralLearner
+
+            config, max_steps, torch_threads, seed, device, mixed_precision = args
+            learner = CentralLearner(
+                config, max_steps, torch_threads, seed, Compute.of(device, mixed_precision)
+            )
+            learner.prepare()  # the algorithms' modules (torchrl) before the first data
+            self._learner = learner
+        except BaseException as error:  # raised by the next call that needs the learner
+            self._error = error
+        self._built.set()
+
+    @property
+    def learner(self) -> CentralLearner:
+        """The built learner, with what came before it handed over (waits for both)."""
+        self._built.wait()
+        if self._error is not None:
+            raise RuntimeError(f"the learner failed to start: {self._error}") from self._error
+        assert self._learner is not None
+        self._learner.stats.duplicate_steps += self._early_duplicates
+        self._early_duplicates = 0
+        if self._early:
+            early, self._early = self._early, []
+            for segment in early:  # one by one: progress counts each as it moves over
+                self._early_steps[_behavior(segment)] -= len(segment)
+                self._learner.submit([segment])
+        return self._learner
 
     def prepare(self) -> None:
-        self.learner.prepare()
+        """Wait until the learner is built (its imports are done)."""
+        with self._lock:
+            self.learner  # noqa: B018  (the property waits and hands over)
 
     def submit(self, segments: list[Any]) -> tuple[int, int | None]:
-        return self.learner.submit(segments)
+        with self._lock:
+            if not self._built.is_set():
+                self._keep_early(segments)
+                wanted = self._early_wanted()
+                if wanted is None or wanted > 1:  # the first update's data is not all in
+                    return 0, wanted
+                segments = []  # kept: handed over with the others, once the learner is up
+            return self.learner.submit(segments)
+
+    def _keep_early(self, segments: list[Any]) -> None:
+        for segment in segments:
+            sourced = isinstance(segment, Segment) and segment.source is not None
+            if sourced and not self._sources.first(segment):
+                self._early_duplicates += len(segment)  # a delivery Ray retried
+                continue
+            self._early.append(segment)
+            behavior = _behavior(segment)
+            self._early_steps[behavior] = self._early_steps.get(behavior, 0) + len(segment)
+
+    def _early_wanted(self) -> int | None:
+        """The on-policy demand of the behaviors seen so far, from their configs."""
+        wants = [
+            on_policy_wanted(settings.hyperparameters.buffer_size, steps)
+            for behavior, steps in self._early_steps.items()
+            if (settings := self.config.for_behavior(behavior)).trainer_type == "ppo"
+        ]
+        return min(wants) if wants else None
 
     def weights(self) -> tuple[int, dict[str, Any]]:
-        return self.learner.weights()
+        with self._lock:
+            return self.learner.weights()
 
     def progress(self) -> dict[str, Any]:
-        return self.learner.progress()
+        """Steps per behavior, those not yet handed over included."""
+        if self._learner is None:
+            steps = dict(self._early_steps)
+            done = bool(steps) and all(
+                s >= (self.max_steps or self.config.for_behavior(b).max_steps)
+                for b, s in steps.items()
+            )
+            return {"version": 0, "steps": steps, "done": done, "stats": LearnerStats()}
+        progress = self._learner.progress()
+        for behavior, steps in list(self._early_steps.items()):
+            progress["steps"][behavior] = progress["steps"].get(behavior, 0) + steps
+        return progress
 
     def drain_reports(self) -> list[tuple[str, int, dict[str, float]]]:
-        return self.learner.drain_reports()
+        return self._learner.drain_reports() if self._learner is not None else []
 
     def state_dict(self) -> dict[str, Any]:
-        return self.learner.state_dict()
+        with self._lock:
+            return self.learner.state_dict()
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.learner.load_state_dict(state)
+        with self._lock:
+            self.learner.load_state_dict(state)
+
+
+def _behavior(segment: Segment | TensorDict) -> str:
+    """A segment's behavior: a worker's ``Segment``, or a TensorDict (tests, benchmarks)."""
+    if isinstance(segment, Segment):
+        return segment.behavior
+    return str(segment.get_non_tensor(keys.BEHAVIOR))
 
 
 def learner_actor(
@@ -74,6 +183,4 @@ def learner_actor(
 
     remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
     remote = remote.options(num_cpus=num_cpus, num_gpus=0 if device == "cpu" else 1)
-    learner = remote.remote(config, max_steps, 1, seed, device, mixed_precision)
-    learner.prepare.remote()  # while the workers start
-    return learner
+    return remote.remote(config, max_steps, 1, seed, device, mixed_precision)

@@ -208,10 +208,14 @@ class RolloutService(WorkerSupervision):
         self._idle.difference_update(idle)
 
     def step(self, timeout: float = 60.0) -> int:
-        """Route one finished collect to the learner; returns the segments routed."""
+        """Route one finished collect to the learner; returns the segments routed (0 when
+        the learner stays busy through ``timeout``, so that the caller can read its status)."""
         if self.membership is not None:
             self._grow()
-        self._drain_submits(block=len(self._submits) >= self.config.learner_in_flight)
+        full = len(self._submits) >= self.config.learner_in_flight
+        self._drain_submits(block=full, timeout=timeout)
+        if len(self._submits) >= self.config.learner_in_flight:
+            return 0  # the learner is still busy (an update): the caller may look at it now
         now = time.perf_counter()
         for index in [i for i, at in self._retry_at.items() if at <= now]:
             del self._retry_at[index]
@@ -329,7 +333,7 @@ class RolloutService(WorkerSupervision):
         deadline = time.perf_counter() + seconds if seconds is not None else None
         last_report = 0.0
         while True:
-            self.step()
+            self.step(60.0 if deadline is None else max(0.0, deadline - time.perf_counter()))
             now = time.perf_counter()
             if now - last_report >= report_every:
                 self.refresh_metrics()

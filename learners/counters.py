@@ -1,0 +1,54 @@
+"""What the learner counts, without torch: the driver reads these (``progress``), and the
+learner's Ray host counts the segments that arrive while its process still loads torch.
+
+``LearnerStats``: the learner's throughput counters. ``Sources``: which segment
+deliveries were taken, so that a retried one is taken once. ``on_policy_wanted``: an
+on-policy learner's demand, steps still missing before its next update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rollout.segments import Segment
+
+
+def on_policy_wanted(buffer_size: int, steps: int) -> int:
+    """Steps still missing before a buffer of ``steps`` is ready (at least 1): ML-Agents'
+    trainers update once more than ``buffer_size`` steps are in."""
+    return max(buffer_size + 1 - steps, 1)
+
+
+@dataclass
+class LearnerStats:
+    samples: int = 0  # valid steps consumed by updates
+    update_seconds: float = 0.0
+    submit_seconds: float = 0.0
+    updates: int = 0
+    duplicate_steps: int = 0  # segments delivered twice (Ray retries), taken once
+
+
+class Sources:
+    """The segment sources taken so far, to take each once. Per (incarnation, behavior): the
+    number up to which all were taken, and those taken above it (deliveries come nearly in
+    order, so the set stays small however long the run)."""
+
+    def __init__(self) -> None:
+        self._taken: dict[tuple[str, str], tuple[int, set[int]]] = {}
+
+    def first(self, segment: Segment) -> bool:
+        """Whether this is the first delivery of the segment's source (recording it)."""
+        assert segment.source is not None
+        incarnation, number = segment.source
+        key = (incarnation, segment.behavior)
+        upto, above = self._taken.get(key, (0, set()))
+        if number <= upto or number in above:
+            return False
+        above.add(number)
+        while upto + 1 in above:
+            upto += 1
+            above.discard(upto)
+        self._taken[key] = (upto, above)
+        return True

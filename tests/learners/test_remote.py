@@ -1,0 +1,102 @@
+"""The learner's Ray host without Ray (``learners.remote.LearnerHost``): while its
+process still loads torch it already takes segments, counts them for the driver's
+summaries, and hands them to the learner once, in order."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from learners.config import parse_config
+from learners.remote import LearnerHost
+from tests.learners.fakes import segment, vector_spec
+from tests.learners.test_algorithms import as_segment
+
+BEHAVIOR = "A?team=0"
+
+
+class HeldHost(LearnerHost):
+    """A host whose learner is built only once the test lets it (its imports 'take' that long)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        self.gate = threading.Event()
+        super().__init__(*args, **kwargs)
+
+    def _build(self, *args) -> None:
+        assert self.gate.wait(60)
+        super()._build(*args)
+
+
+def ppo_config(buffer_size: int):
+    return parse_config(
+        {
+            "behaviors": {
+                "A": {
+                    "trainer_type": "ppo",
+                    "hyperparameters": {"batch_size": 32, "buffer_size": buffer_size},
+                }
+            }
+        }
+    )
+
+
+def piece(number: int, rows: int = 2, worker: str = "w"):
+    return as_segment(
+        segment(vector_spec(continuous=2), rows, 16, BEHAVIOR, seed=number), (worker, number)
+    )
+
+
+def test_segments_before_the_learner_is_built_are_counted_then_handed_over_once():
+    host = HeldHost(ppo_config(buffer_size=100), None, 1, seed=0)
+    try:
+        # answered at once, with the first update's demand from the config (101 steps)
+        assert host.submit([]) == (0, None)  # no behavior seen yet: no demand known
+        assert host.submit([piece(1)]) == (0, 101 - 32)
+        assert host.submit([piece(2), piece(1)]) == (0, 101 - 64)  # 1 again: a Ray retry
+        progress = host.progress()
+        assert progress["steps"] == {BEHAVIOR: 64} and progress["version"] == 0
+        assert not progress["done"] and host.drain_reports() == []
+
+        # the submission that fills the demand waits for the learner, then gets its answer
+        answer: list[tuple[int, int | None]] = []
+        filling = threading.Thread(target=lambda: answer.append(host.submit([piece(3, 3)])))
+        filling.start()
+        filling.join(0.5)
+        assert filling.is_alive() and answer == []  # 112 steps in: it waits for the build
+        assert host.progress()["steps"] == {BEHAVIOR: 112}
+        host.gate.set()
+        filling.join(120)
+        assert answer == [(1, 101)]  # one update on the 112 steps; the next wants 101 more
+
+        progress = host.progress()
+        assert progress["steps"] == {BEHAVIOR: 112} and progress["version"] == 1
+        assert progress["stats"].duplicate_steps == 32  # the retried delivery, taken once
+        assert [b for b, _, _ in host.drain_reports()] == [BEHAVIOR]
+        host.submit([piece(1)])  # a retry that comes after the handover: still taken once
+        assert host.progress()["steps"] == {BEHAVIOR: 112}
+        state = host.state_dict()
+        assert state["step"] == 112 and state["version"] == 1
+    finally:
+        host.gate.set()
+
+
+def test_off_policy_segments_wait_for_the_learner_without_a_demand():
+    config = parse_config({"behaviors": {"A": {"trainer_type": "sac"}}})
+    host = HeldHost(config, None, 1, seed=0)
+    try:
+        assert host.submit([piece(1)]) == (0, None)  # SAC: any amount, any time
+        assert host.progress()["steps"] == {BEHAVIOR: 32}
+        host.gate.set()
+        assert host.submit([piece(2)])[1] is None  # built: both handed over, in order
+        assert host.progress()["steps"] == {BEHAVIOR: 64}
+    finally:
+        host.gate.set()
+
+
+def test_a_learner_that_fails_to_build_says_why_on_the_next_call():
+    config = ppo_config(buffer_size=100)
+    host = LearnerHost(config, None, 1, seed=0, device="cuda:7")  # no such device here
+    with pytest.raises(RuntimeError, match="the learner failed to start: --device cuda:7") as err:
+        host.state_dict()
+    assert "\n" not in str(err.value)
