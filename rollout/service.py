@@ -333,7 +333,8 @@ class RolloutService(WorkerSupervision):
         deadline = time.perf_counter() + seconds if seconds is not None else None
         last_report = 0.0
         while True:
-            self.step(60.0 if deadline is None else max(0.0, deadline - time.perf_counter()))
+            left = report_every if deadline is None else deadline - time.perf_counter()
+            self.step(max(0.0, min(report_every, left)))  # back for the checks below
             now = time.perf_counter()
             if now - last_report >= report_every:
                 self.refresh_metrics()

@@ -215,6 +215,33 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
     assert sum(acted.values()) / len(acted) <= demand + workers * 12 * horizon, acted
 
 
+def test_the_driver_gets_control_back_while_the_learner_updates(ray_session, registry):
+    """``run(seconds=...)`` returns on time while the learner's update still runs (the
+    driver reads progress and prints summaries meanwhile), instead of blocking on the
+    submission that triggered it. The learner answers ``summary`` during its update."""
+    demand = 300
+    learner = (
+        ray_session.remote(CountingLearner)
+        .options(max_concurrency=2)
+        .remote(demand=demand, update_seconds=15)
+    )
+    config = service_config(UnityConfig("unitysim:3DBall"), registry, horizon=8)
+    with RolloutService(config, actor_factory, learner) as service:
+        back_during_update = 0  # run() calls that came back while the 15 s update ran
+        for _ in range(120):
+            service.run(seconds=0.5)
+            summary = ray_session.get(learner.summary.remote())
+            if sum(summary["steps"].values()) >= demand:
+                if summary["version"] > 0:
+                    break
+                back_during_update += 1
+        # a collect already under way can end one call early; waiting ends all the others
+        assert back_during_update >= 5, f"run() waited for the learner's update: {summary}"
+        service.run(until=lambda m: service.version >= 1, seconds=120)
+        assert service.version == 1
+    ray_session.kill(learner)
+
+
 def test_synthetic_workers_replay_real_collects_with_no_unity_left(ray_session, registry):
     """benchmarks/bench_central.py's source: recorded 3DBall collects, renumbered and
     stamped with the version each worker was sent, routed and booked like real ones."""
