@@ -15,6 +15,8 @@ in order.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import threading
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +29,9 @@ if TYPE_CHECKING:
 
     from learners.config import RunConfig
     from learners.learner import CentralLearner
+
+
+BUILD_NICENESS = 10  # added to the building thread's: its imports wait for idle CPU
 
 
 class LearnerHost:
@@ -59,6 +64,12 @@ class LearnerHost:
         self._builder.start()
 
     def _build(self, *args: Any) -> None:
+        # Yield the CPU to the workers and their players while they collect the first
+        # update's data (this thread only; it ends once the learner is built).
+        with contextlib.suppress(OSError, AttributeError):
+            thread = threading.get_native_id()
+            niceness = os.getpriority(os.PRIO_PROCESS, thread) + BUILD_NICENESS
+            os.setpriority(os.PRIO_PROCESS, thread, niceness)
         try:
             from learners.devices import Compute
             from learners.learner import CentralLearner

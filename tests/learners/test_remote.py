@@ -4,12 +4,13 @@ summaries, and hands them to the learner once, in order."""
 
 from __future__ import annotations
 
+import os
 import threading
 
 import pytest
 
 from learners.config import parse_config
-from learners.remote import LearnerHost
+from learners.remote import BUILD_NICENESS, LearnerHost
 from tests.learners.fakes import segment, vector_spec
 from tests.learners.test_algorithms import as_segment
 
@@ -100,3 +101,20 @@ def test_a_learner_that_fails_to_build_says_why_on_the_next_call():
     with pytest.raises(RuntimeError, match="the learner failed to start: --device cuda:7") as err:
         host.state_dict()
     assert "\n" not in str(err.value)
+
+
+def test_the_learner_is_built_at_a_lower_priority_than_the_rest_of_its_process():
+    """The build's imports take CPU that the workers and their players need while they
+    collect the first update's data; only the building thread yields it."""
+    seen: list[int] = []
+
+    class Recording(LearnerHost):
+        def _build(self, *args) -> None:
+            super()._build(*args)
+            seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+
+    host = Recording(ppo_config(buffer_size=100), None, 1, seed=0)
+    host.prepare()  # waits for the build
+    here = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    assert seen == [min(here + BUILD_NICENESS, 19)]
+    assert os.getpriority(os.PRIO_PROCESS, 0) == here  # the process itself: unchanged
