@@ -2,8 +2,9 @@
 learner's Ray host counts the segments that arrive while its process still loads torch.
 
 ``LearnerStats``: the learner's throughput counters. ``Sources``: which segment
-deliveries were taken, so that a retried one is taken once. ``on_policy_wanted``: an
-on-policy learner's demand, steps still missing before its next update.
+deliveries were taken, so that a retried one is taken once. ``all_done``: whether the
+run has its steps. ``on_policy_wanted``: an on-policy learner's demand, steps still
+missing before its next update.
 """
 
 from __future__ import annotations
@@ -12,7 +13,19 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from learners.config import RunConfig
     from rollout.segments import Segment
+
+
+def all_done(steps: Mapping[str, int], config: RunConfig, max_steps: int | None) -> bool:
+    """Whether every behavior seen has its steps: ``max_steps`` (the CLI's ``--max-steps``)
+    or else its config's ``max_steps``; none seen, not done."""
+    return bool(steps) and all(
+        count >= (max_steps or config.for_behavior(behavior).max_steps)
+        for behavior, count in steps.items()
+    )
 
 
 def on_policy_wanted(buffer_size: int, steps: int) -> int:

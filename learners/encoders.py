@@ -15,6 +15,8 @@ trunks (``learners.policies``), the config check of the type name (``learners.co
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 from torch import nn
 
@@ -106,39 +108,22 @@ class VisualEncoder(nn.Module):
         return self.activation(self.dense(torch.flatten(self.body(x), 1)))
 
 
-def _simple(channels: int) -> tuple[nn.Module, nn.Module]:
-    """8x8/4 to 16 maps, 4x4/2 to 32, leaky ReLUs; dense, leaky ReLU."""
-    body = nn.Sequential(
-        nn.Conv2d(channels, 16, 8, 4),
-        nn.LeakyReLU(),
-        nn.Conv2d(16, 32, 4, 2),
-        nn.LeakyReLU(),
-    )
-    return body, nn.LeakyReLU()
+def _leaky_convs(
+    layers: tuple[tuple[int, int, int], ...], channels: int
+) -> tuple[nn.Module, nn.Module]:
+    """Unpadded convolutions, ``(maps, kernel, stride)`` each, every one followed by a
+    leaky ReLU; the dense head's activation: leaky ReLU."""
+    modules: list[nn.Module] = []
+    for maps, kernel, stride in layers:
+        modules += [nn.Conv2d(channels, maps, kernel, stride), nn.LeakyReLU()]
+        channels = maps
+    return nn.Sequential(*modules), nn.LeakyReLU()
 
 
-def _nature_cnn(channels: int) -> tuple[nn.Module, nn.Module]:
-    """DQN's: 8x8/4 to 32, 4x4/2 to 64, 3x3/1 to 64, leaky ReLUs; dense, leaky ReLU."""
-    body = nn.Sequential(
-        nn.Conv2d(channels, 32, 8, 4),
-        nn.LeakyReLU(),
-        nn.Conv2d(32, 64, 4, 2),
-        nn.LeakyReLU(),
-        nn.Conv2d(64, 64, 3, 1),
-        nn.LeakyReLU(),
-    )
-    return body, nn.LeakyReLU()
-
-
-def _match3(channels: int) -> tuple[nn.Module, nn.Module]:
-    """For small boards: 3x3/1 to 35, 3x3/1 to 144, leaky ReLUs; dense, leaky ReLU."""
-    body = nn.Sequential(
-        nn.Conv2d(channels, 35, 3, 1),
-        nn.LeakyReLU(),
-        nn.Conv2d(35, 144, 3, 1),
-        nn.LeakyReLU(),
-    )
-    return body, nn.LeakyReLU()
+# ML-Agents' convolution stacks, (maps, kernel, stride) per layer
+_SIMPLE = ((16, 8, 4), (32, 4, 2))
+_NATURE_CNN = ((32, 8, 4), (64, 4, 2), (64, 3, 1))  # DQN's
+_MATCH3 = ((35, 3, 1), (144, 3, 1))  # for small boards
 
 
 def _resnet(channels: int) -> tuple[nn.Module, nn.Module]:
@@ -160,10 +145,10 @@ def _fully_connected(channels: int) -> tuple[nn.Module, nn.Module]:
 
 
 _BUILDERS = {
-    "simple": _simple,
-    "nature_cnn": _nature_cnn,
+    "simple": partial(_leaky_convs, _SIMPLE),
+    "nature_cnn": partial(_leaky_convs, _NATURE_CNN),
     "resnet": _resnet,
-    "match3": _match3,
+    "match3": partial(_leaky_convs, _MATCH3),
     "fully_connected": _fully_connected,
 }
 

@@ -23,7 +23,7 @@ import torch
 
 from learners import checkpoint
 from learners.acting import base_name, policy_factory
-from learners.counters import LearnerStats, Sources
+from learners.counters import LearnerStats, Sources, all_done
 from learners.devices import Compute, to_cpu
 from learners.policies import ActorCritic, numpy_state
 from rollout import keys
@@ -182,16 +182,13 @@ class CentralLearner:
         state.updates.append(self.version)
         self._reports.append((behavior, state.steps, report))
 
-    def behavior_max_steps(self, behavior: str) -> int:
-        return self.max_steps or self.config.for_behavior(behavior).max_steps
-
     # --- for the driver -----------------------------------------------------------------
 
     def progress(self) -> dict[str, Any]:
         """Steps per behavior, whether all are done, and learner throughput."""
         # copies: as a Ray actor (learner_actor) this runs while ``submit`` may
         steps = {name: s.steps for name, s in list(self.behaviors.items())}
-        done = bool(steps) and all(s >= self.behavior_max_steps(name) for name, s in steps.items())
+        done = all_done(steps, self.config, self.max_steps)
         return {"version": self.version, "steps": steps, "done": done, "stats": replace(self.stats)}
 
     def drain_reports(self) -> list[tuple[str, int, dict[str, float]]]:

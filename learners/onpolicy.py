@@ -35,9 +35,8 @@ class SegmentBuffer:
         segment = segment.exclude(*keys.METADATA)
         if keep is None:
             keep = torch.ones_like(segment[keys.POLICY_VERSION], dtype=torch.bool)
-        train = keep
-        segment[TRAIN] = train
-        steps = int(train.sum())
+        segment[TRAIN] = keep
+        steps = int(keep.sum())
         if steps:
             self.segments.append(segment)
             self.steps += steps

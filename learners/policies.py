@@ -204,7 +204,11 @@ class ActorCritic(nn.Module):
 
     def state_value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """V(obs) with the batch dims kept (no trailing 1)."""
-        return self.value(self.critic_trunk(self.encode(obs))).squeeze(-1)
+        return self.value_of(self.encode(obs))
+
+    def value_of(self, encoded: torch.Tensor) -> torch.Tensor:
+        """V from already encoded observations (``encode``'s output)."""
+        return self.value(self.critic_trunk(encoded)).squeeze(-1)
 
     def unity_action(self, continuous: torch.Tensor) -> torch.Tensor:
         """The continuous action Unity receives for a stored one (squashed: as it is)."""
@@ -320,8 +324,7 @@ class ActorCritic(nn.Module):
             assert discrete is not None
             log_probs.append(dist.log_prob(discrete[..., index]).unsqueeze(-1))
             entropy = entropy + dist.entropy()
-        value = self.value(self.critic_trunk(encoded)).squeeze(-1)
-        return torch.cat(log_probs, dim=-1), entropy, value
+        return torch.cat(log_probs, dim=-1), entropy, self.value_of(encoded)
 
 
 class TorchActor:

@@ -20,7 +20,7 @@ import os
 import threading
 from typing import TYPE_CHECKING, Any
 
-from learners.counters import LearnerStats, Sources, on_policy_wanted
+from learners.counters import LearnerStats, Sources, all_done, on_policy_wanted
 from rollout import keys
 from rollout.segments import Segment
 
@@ -142,10 +142,7 @@ class LearnerHost:
         """Steps per behavior, those not yet handed over included."""
         if self._learner is None:
             steps = dict(self._early_steps)
-            done = bool(steps) and all(
-                s >= (self.max_steps or self.config.for_behavior(b).max_steps)
-                for b, s in steps.items()
-            )
+            done = all_done(steps, self.config, self.max_steps)
             return {"version": 0, "steps": steps, "done": done, "stats": LearnerStats()}
         progress = self._learner.progress()
         for behavior, steps in list(self._early_steps.items()):
