@@ -22,6 +22,7 @@ tag and ended when the run ends.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import re
@@ -305,6 +306,9 @@ def main() -> int:
         choices=[OURS_MLAGENTS, OURS_SHIPPED],
         help="our variants to leave out",
     )
+    parser.add_argument(
+        "--cap", type=float, help="seconds before a run is stopped (default: the case's)"
+    )
     parser.add_argument("--json", help="write the results here too")
     parser.add_argument("--work", help="keep builds, logs and run directories here")
     args = parser.parse_args()
@@ -323,6 +327,8 @@ def main() -> int:
         for case in CASES:
             if args.only and case.name not in args.only:
                 continue
+            if args.cap:
+                case = dataclasses.replace(case, cap_s=args.cap)
             build = build_player(case.env, work)
             rounds = []
             for seed in range(args.first_seed, args.first_seed + args.seeds):
