@@ -66,7 +66,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from rollout.local_ray import BackgroundRay
 
     # Ray comes up while the imports below (torch and friends) load.
-    starting = None if args.address else BackgroundRay(args.cpus)
+    starting = None if args.address else BackgroundRay(args.cpus, args.dashboard)
     try:
         return _train(args, starting)
     finally:
@@ -279,6 +279,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--num-areas", type=int, default=1, help="training areas per Unity")
     train.add_argument("--cpus", type=int, default=2, help="local mode: ray.init(num_cpus)")
     train.add_argument("--address", help="join an existing Ray cluster (e.g. auto in a job)")
+    train.add_argument(
+        "--dashboard",
+        action="store_true",
+        help="local mode: start Ray's dashboard too (127.0.0.1:8265; off by default, it "
+        "delays the start by about 2 s)",
+    )
     train.add_argument(
         "--timeout-wait",
         type=int,

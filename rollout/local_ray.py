@@ -6,20 +6,39 @@ driver's own imports (torch, tensordict, torchrl take as long again); ``train`` 
 it just before it needs it. The thread stays alive until ``shutdown``: Ray's node
 processes die with the thread that started them (their parent-death signal is bound to
 it), so a thread that returned would take the node down with it.
+
+Local mode also leaves out three of the helper processes Ray's head starts, none of which
+a local run uses: the autoscaler monitor (nothing to scale), the log monitor (worker
+output goes to Ray's log files, not to the driver: ``log_to_driver=False``) and the
+dashboard head (``--dashboard`` starts Ray with it). ``ray.init`` has no switch for them,
+so ``_lean_head`` adjusts Ray's own node class for the length of the call; if that fails
+for any reason, plain ``ray.init`` runs instead.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import threading
+import time
+from collections.abc import Iterator
+from typing import Any
 
 import psutil
 import ray
+import ray._private.node
+import ray._private.services
 
 # Ray's own figures: the smallest object store it accepts, and its default share of memory.
 RAY_MIN_OBJECT_STORE = 75 * 1024**2
 RAY_OBJECT_STORE_SHARE = 0.3
 GCS_WAIT = "RAY_gcs_server_port_wait_time_s"  # Ray's variable: seconds for its GCS to start
+NODE_POLL_S = 0.02  # how often ray.init asks the GCS whether its raylet has registered
+NODE_WAIT_S = 180.0  # give up polling, and leave the wait to Ray, after this long
+LEAN_PROCESSES = ("monitor", "log_monitor", "dashboard")  # Ray's names for what we leave out
+
+log = logging.getLogger(__name__)
 
 
 def object_store_bytes(shm_free: int, memory: int) -> int | None:
@@ -44,36 +63,96 @@ def _shm_free() -> int:
     return stats.f_bsize * stats.f_bavail
 
 
-def init_local_ray(cpus: int) -> None:
-    """No dashboard, and workers (with the Unity players they start) at the priority of
-    the command that launched them; Ray's default, niceness 15, would hand their CPU to
+def _lean_node_class(node: type) -> type:
+    class LeanNode(node):  # type: ignore[misc,valid-type]
+        """Ray's head node without the autoscaler monitor, log monitor and dashboard head."""
+
+        def __init__(self, ray_params: Any, *args: Any, **kwargs: Any) -> None:
+            ray_params.no_monitor = True
+            ray_params.include_log_monitor = False
+            super().__init__(ray_params, *args, **kwargs)
+
+        def start_api_server(self, *, include_dashboard: Any, raise_on_failure: Any) -> None:
+            self._webui_url = None  # what the node reports where no dashboard runs
+
+    return LeanNode
+
+
+def _prompt_get_node(get_node: Any) -> Any:
+    """Ray's ``get_node`` asks the GCS for the new raylet once a second; ours asks every
+    20 ms first, so ``ray.init`` goes on as soon as the raylet registers (about 1.5 s
+    after it starts here, which Ray's own poll rounds up to 2 s)."""
+
+    def prompt(gcs_address: str, node_id: str) -> Any:
+        with contextlib.suppress(Exception):  # any trouble: Ray's own wait decides
+            client = ray._raylet.GcsClient(address=gcs_address)
+            give_up = time.monotonic() + NODE_WAIT_S
+            while time.monotonic() < give_up:
+                if any(n.hex() == node_id for n in client.get_all_node_info(timeout=5)):
+                    break
+                time.sleep(NODE_POLL_S)
+        return get_node(gcs_address, node_id)
+
+    return prompt
+
+
+@contextlib.contextmanager
+def _lean_head() -> Iterator[None]:
+    """For the length of a local ``ray.init``: the lean node class and the prompt poll.
+    Both are Ray's private hooks (checked against the pinned Ray 2.60.0); they are put
+    back afterwards, so worker processes and later calls see Ray unchanged."""
+    node_module, services = ray._private.node, ray._private.services
+    node, get_node = node_module.Node, services.get_node
+    node_module.Node = _lean_node_class(node)
+    services.get_node = _prompt_get_node(get_node)
+    try:
+        yield
+    finally:
+        node_module.Node, services.get_node = node, get_node
+
+
+def init_local_ray(cpus: int, dashboard: bool = False) -> None:
+    """No dashboard unless asked, no other helper this run does not use (``_lean_head``),
+    and workers (with the Unity players they start) at the priority of the command that
+    launched them; Ray's default, niceness 15, would hand their CPU to
     every other process on a shared machine. On a cluster the operator sets it at
     ``ray start`` (``RAY_worker_niceness``; deploy/README.md). The object store fits
     /dev/shm (``object_store_bytes``). Ray gives its GCS server 30 s to come up; with every
     core taken by other work that start took longer, and the run died in ``ray.init``:
     local mode waits up to 3 minutes unless the user set Ray's own variable."""
     os.environ.setdefault(GCS_WAIT, "180")
-    ray.init(
-        num_cpus=cpus,
-        include_dashboard=False,
-        log_to_driver=False,
-        object_store_memory=object_store_bytes(_shm_free(), psutil.virtual_memory().total),
-        _system_config={"worker_niceness": 0},
-    )
+    options: dict[str, Any] = {
+        "num_cpus": cpus,
+        "include_dashboard": dashboard,
+        "log_to_driver": False,
+        "object_store_memory": object_store_bytes(_shm_free(), psutil.virtual_memory().total),
+        "_system_config": {"worker_niceness": 0},
+    }
+    if dashboard:
+        ray.init(**options)
+        return
+    try:
+        with _lean_head():
+            ray.init(**options)
+    except Exception as error:  # a Ray whose internals moved: start it the plain way
+        log.warning("lean local Ray did not start (%s); starting Ray's full head", error)
+        if ray.is_initialized():
+            ray.shutdown()
+        ray.init(**options)
 
 
 class BackgroundRay:
     """``init_local_ray`` on a thread that lives until ``shutdown``."""
 
-    def __init__(self, cpus: int) -> None:
+    def __init__(self, cpus: int, dashboard: bool = False) -> None:
         self._ready, self._stop = threading.Event(), threading.Event()
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(cpus,), daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(cpus, dashboard), daemon=True)
         self._thread.start()
 
-    def _run(self, cpus: int) -> None:
+    def _run(self, cpus: int, dashboard: bool) -> None:
         try:
-            init_local_ray(cpus)
+            init_local_ray(cpus, dashboard)
         except BaseException as error:  # handed to the caller of wait()
             self._error = error
         self._ready.set()

@@ -42,3 +42,53 @@ def test_local_mode_gives_rays_gcs_time_on_a_busy_machine(monkeypatch):
     monkeypatch.setenv(local_ray.GCS_WAIT, "45")  # the user's choice stands
     local_ray.init_local_ray(2)
     assert os.environ[local_ray.GCS_WAIT] == "45"
+
+
+def test_local_ray_runs_actors_without_the_helpers_it_does_not_use(ray_session):
+    from rollout.local_ray import LEAN_PROCESSES
+
+    node = ray_session._private.worker._global_node
+    started = set(node.all_processes)
+    assert {"gcs_server", "raylet"} <= started
+    assert not started & set(LEAN_PROCESSES)
+    assert node.webui_url is None  # no dashboard, and Ray knows it
+
+    @ray_session.remote(num_cpus=0)
+    def pid() -> int:
+        return os.getpid()
+
+    assert ray_session.get(pid.remote()) != os.getpid()  # a worker process answered
+
+
+def test_the_lean_head_puts_rays_hooks_back_even_when_init_fails():
+    import pytest
+    import ray._private.node
+    import ray._private.services
+
+    from rollout.local_ray import _lean_head
+
+    node, get_node = ray._private.node.Node, ray._private.services.get_node
+    with pytest.raises(RuntimeError), _lean_head():
+        assert issubclass(ray._private.node.Node, node) and ray._private.node.Node is not node
+        raise RuntimeError("ray.init failed")
+    assert ray._private.node.Node is node and ray._private.services.get_node is get_node
+
+
+def test_a_ray_whose_internals_moved_still_starts_the_plain_way(monkeypatch):
+    import ray
+    import ray._private.node
+
+    from rollout import local_ray
+
+    plain = ray._private.node.Node
+    calls: list[bool] = []
+
+    def init(**kwargs: object) -> None:
+        calls.append(ray._private.node.Node is plain)
+        if len(calls) == 1:
+            raise TypeError("Node.__init__() got an unexpected keyword argument")
+
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    local_ray.init_local_ray(2)
+    assert calls == [False, True]  # the lean try, then Ray as it comes
