@@ -1,0 +1,248 @@
+"""One PPO update, ours and mlagents-learn 1.1.0's own code, on the same buffer and weights.
+
+Where learning curves can only be compared statistically, one update can be compared
+exactly: the same initial weights, the same 270 steps (rows of ``time_horizon`` steps,
+some ending their episode, the others cut and bootstrapped), the minibatches taken in
+order instead of shuffled. Our side runs ``learners.ppo.PPO.update`` (GAE, whole-buffer
+advantage normalization, ``num_epoch`` passes, the loss, Adam); ML-Agents' side builds
+its trajectories, value estimates, ``get_gae`` and ``TorchPPOOptimizer.update`` as its
+PPO trainer does. The weights after the update must agree to float precision.
+
+ML-Agents' side runs in the anchor recipe's venv (``--anchor``, as
+``bench_vs_mlagents.py``) with the launcher's runtime workarounds; this script calls
+itself there with ``--side mlagents``.
+
+    .venv/bin/python benchmarks/check_ppo_vs_mlagents.py --seeds 0 1 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIG = Path(__file__).resolve().parent / "mlagents_configs" / "ppo_Basic.yaml"
+BEHAVIOR, OBS_SIZE, BRANCH = "Basic", 20, 3  # Basic's spec: a one-hot position, 3 moves
+ROWS = 90
+# our parameter -> (ML-Agents' module: "actor" or "critic", its parameter)
+ML_NAMES = {
+    "trunk.0": ("actor", "network_body._body_endoder.seq_layers.0"),
+    "logits": ("actor", "action_model._discrete_distribution.branches.0"),
+    "critic_trunk.0": ("critic", "network_body._body_endoder.seq_layers.0"),
+    "value": ("critic", "value_heads.value_heads.extrinsic"),
+}
+TOLERANCE = 1e-3  # of how far the update moved each parameter
+
+
+def buffer(seed: int, horizon: int) -> dict[str, np.ndarray]:
+    """Rows of ``horizon`` steps: one-hot observations, -0.01 a step, 30 % of rows end
+    their episode with +1 or +0.1 (terminated), the others are cut (bootstrapped)."""
+    rng = np.random.default_rng(seed)
+    reward = np.full((ROWS, horizon), -0.01, np.float32)
+    ends = rng.random(ROWS) < 0.3
+    reward[ends, -1] = np.where(rng.random(int(ends.sum())) < 0.5, 1.0, 0.1)
+    return {
+        "obs": np.eye(OBS_SIZE, dtype=np.float32)[rng.integers(0, OBS_SIZE, (ROWS, horizon + 1))],
+        "reward": reward,
+        "action": rng.integers(0, BRANCH, (ROWS, horizon)),
+        "ends": ends,
+    }
+
+
+def ours(seed: int, out: Path) -> None:
+    import torch
+    from mlagents_envs.base_env import (
+        ActionSpec,
+        BehaviorSpec,
+        DimensionProperty,
+        ObservationSpec,
+        ObservationType,
+    )
+
+    from learners.config import load_config
+    from learners.policies import ActorCritic
+    from learners.ppo import PPO
+    from rollout import keys
+    from rollout.specs import log_prob_size, spec_to_dict, step_spec
+
+    settings = load_config(CONFIG).for_behavior(BEHAVIOR)
+    horizon = settings.time_horizon
+    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
+    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    torch.manual_seed(seed)
+    network = ActorCritic(spec, settings.network_settings)
+    initial = {k: v.detach().clone().numpy() for k, v in network.state_dict().items()}
+    data = buffer(seed, horizon)
+    n = ROWS * horizon
+    last = np.zeros((ROWS, horizon), bool)
+    last[:, -1] = True
+    terminated = last & data["ends"][:, None]
+    steps = step_spec(spec).expand(n).zero()
+    steps[keys.OBS, "v"] = torch.from_numpy(data["obs"][:, :-1].reshape(n, OBS_SIZE))
+    steps[keys.NEXT, keys.OBS, "v"] = torch.from_numpy(data["obs"][:, 1:].reshape(n, OBS_SIZE))
+    steps[keys.NEXT, keys.REWARD] = torch.from_numpy(data["reward"].reshape(n, 1))
+    steps[keys.NEXT, keys.DONE] = torch.from_numpy(last.reshape(n, 1))
+    steps[keys.NEXT, keys.TERMINATED] = torch.from_numpy(terminated.reshape(n, 1))
+    steps[keys.NEXT, keys.TRUNCATED] = torch.from_numpy((last & ~terminated).reshape(n, 1))
+    steps[keys.ACTION, keys.DISCRETE] = torch.from_numpy(data["action"].reshape(n, 1))
+    steps[keys.ACTION_MASK] = torch.ones(n, BRANCH, dtype=torch.bool)
+    steps[keys.POLICY_VERSION] = torch.zeros(n, dtype=torch.int64)
+    with torch.no_grad():  # the acting policy's log-probabilities: the initial weights'
+        log_prob, _, _ = network.evaluate(
+            {"v": steps[keys.OBS, "v"]}, None, steps[keys.ACTION, keys.DISCRETE]
+        )
+    assert log_prob.shape[-1] == log_prob_size(spec)
+    steps[keys.LOG_PROB] = log_prob
+    steps.set_non_tensor(keys.BEHAVIOR, f"{BEHAVIOR}?team=0")
+    steps.set_non_tensor(keys.SPEC, spec_to_dict(spec))
+    ppo = PPO(network, settings)
+    ppo.add(steps, torch.zeros(n, dtype=torch.int64))
+    assert ppo.ready()
+    in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
+    shuffle, torch.randperm = torch.randperm, in_order  # minibatches in order, as ML's below
+    try:
+        ppo.update(0.0)
+    finally:
+        torch.randperm = shuffle
+    after = {k: v.detach().numpy() for k, v in network.state_dict().items()}
+    np.savez(
+        out,
+        horizon=horizon,
+        log_prob=log_prob.numpy().reshape(ROWS, horizon),
+        **data,
+        **{f"initial/{k}": v for k, v in initial.items()},
+        **{f"after/{k}": v for k, v in after.items()},
+    )
+
+
+def mlagents(case: Path, anchor: Path) -> float:
+    """ML-Agents' PPO trainer and optimizer on the case's buffer; returns the worst
+    difference from our weights, relative to how far the update moved them."""
+    preamble = (anchor / "mlagents_learn_launcher.py").read_text()
+    preamble = preamble.split("from mlagents.trainers.learn import main")[0]
+    exec(compile(preamble, "mlagents_learn_launcher.py", "exec"), {})  # its workarounds
+    import torch
+    import yaml
+    from mlagents.plugins.trainer_type import register_trainer_plugins
+    from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
+    from mlagents.trainers.policy.torch_policy import TorchPolicy
+    from mlagents.trainers.ppo.optimizer_torch import TorchPPOOptimizer
+    from mlagents.trainers.settings import RunOptions
+    from mlagents.trainers.torch_entities.networks import SimpleActor
+    from mlagents.trainers.trainer.trainer_utils import get_gae
+    from mlagents.trainers.trajectory import ObsUtil
+    from mlagents_envs.base_env import (
+        ActionSpec,
+        BehaviorSpec,
+        DimensionProperty,
+        ObservationSpec,
+        ObservationType,
+    )
+
+    register_trainer_plugins()
+    d = np.load(case)
+    settings = RunOptions.from_dict(yaml.safe_load(CONFIG.read_text())).behaviors[BEHAVIOR]
+    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
+    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
+    policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
+    optimizer = TorchPPOOptimizer(policy, settings)
+    modules = {"actor": policy.actor, "critic": optimizer.critic}
+    for name, (module, theirs) in ML_NAMES.items():
+        state = modules[module].state_dict()
+        for part in ("weight", "bias"):
+            state[f"{theirs}.{part}"] = torch.from_numpy(d[f"initial/{name}.{part}"])
+        modules[module].load_state_dict(state)
+
+    extrinsic = optimizer.reward_signals["extrinsic"]
+    update, obs_key, horizon = AgentBuffer(), ObsUtil.get_name_at(0), int(d["horizon"])
+    for row in range(ROWS):  # one trajectory per row, as its trainer's _process_trajectory
+        trajectory = AgentBuffer()
+        for t in range(horizon):
+            trajectory[obs_key].append(d["obs"][row, t])
+            trajectory[BufferKey.ENVIRONMENT_REWARDS].append(d["reward"][row, t])
+            trajectory[BufferKey.DISCRETE_ACTION].append(np.array([d["action"][row, t]]))
+            trajectory[BufferKey.CONTINUOUS_ACTION].append(np.zeros(0, np.float32))
+            trajectory[BufferKey.DISCRETE_LOG_PROBS].append(d["log_prob"][row, t : t + 1])
+            trajectory[BufferKey.CONTINUOUS_LOG_PROBS].append(np.zeros(0, np.float32))
+            trajectory[BufferKey.ACTION_MASK].append(np.ones(BRANCH, np.float32))
+            trajectory[BufferKey.MASKS].append(1.0)
+            trajectory[BufferKey.DONE].append(bool(d["ends"][row]) and t == horizon - 1)
+        values, value_next, _ = optimizer.get_trajectory_value_estimates(
+            trajectory, [d["obs"][row, horizon]], bool(d["ends"][row])
+        )
+        value = values["extrinsic"]
+        trajectory[RewardSignalUtil.value_estimates_key("extrinsic")].extend(value)
+        advantage = get_gae(
+            rewards=extrinsic.evaluate(trajectory) * extrinsic.strength,
+            value_estimates=value,
+            value_next=value_next["extrinsic"],
+            gamma=extrinsic.gamma,
+            lambd=settings.hyperparameters.lambd,
+        )
+        trajectory[RewardSignalUtil.returns_key("extrinsic")].set(advantage + value)
+        trajectory[RewardSignalUtil.advantage_key("extrinsic")].set(advantage)
+        trajectory[BufferKey.ADVANTAGES].set(list(advantage))
+        trajectory.resequence_and_append(update, training_length=policy.sequence_length)
+    advantages = np.array(update[BufferKey.ADVANTAGES].get_batch(), dtype=np.float32)
+    normalized = (advantages - advantages.mean()) / (advantages.std() + 1e-10)
+    update[BufferKey.ADVANTAGES].set(normalized)  # as its trainer's _update_policy
+    h, n = settings.hyperparameters, update.num_experiences
+    for _ in range(h.num_epoch):  # its trainer shuffles here; ours is told not to either
+        for start in range(0, (n // h.batch_size) * h.batch_size, h.batch_size):
+            optimizer.update(update.make_mini_batch(start, start + h.batch_size), h.batch_size)
+
+    worst = 0.0
+    for name, (module, theirs) in ML_NAMES.items():
+        for part in ("weight", "bias"):
+            mine = d[f"after/{name}.{part}"]
+            diff = float(
+                np.abs(modules[module].state_dict()[f"{theirs}.{part}"].numpy() - mine).max()
+            )
+            moved = float(np.abs(mine - d[f"initial/{name}.{part}"]).max())
+            print(f"  {name}.{part:<6} max |ML - ours| {diff:.1e}, moved by the update {moved:.1e}")
+            worst = max(worst, diff / max(moved, 1e-12))
+    return worst
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument(
+        "--anchor", type=Path, default=os.environ.get("MLAGENTS_ANCHOR", "/tmp/mlbench")
+    )
+    parser.add_argument("--side", choices=["ours", "mlagents"], help=argparse.SUPPRESS)
+    parser.add_argument("--case", type=Path, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.side == "ours":
+        ours(args.seeds[0], args.case)
+        return
+    if args.side == "mlagents":
+        worst = mlagents(args.case, args.anchor)
+        print(f"worst relative difference {worst:.1e}")
+        sys.exit(0 if worst <= TOLERANCE else 1)
+    if not (args.anchor / "mlagents_learn_launcher.py").is_file():
+        sys.exit(f"error: no mlagents-learn anchor in {args.anchor}: run the anchor recipe first")
+    failed = []
+    with tempfile.TemporaryDirectory() as work:
+        for seed in args.seeds:
+            case = Path(work) / f"case-{seed}.npz"
+            me = [sys.executable, __file__, "--case", str(case), "--anchor", str(args.anchor)]
+            subprocess.run([*me, "--side", "ours", "--seeds", str(seed)], check=True, cwd=ROOT)
+            print(f"seed {seed}: weights after one update, ML-Agents' code against ours")
+            theirs = [str(args.anchor / "venv/bin/python"), *me[1:], "--side", "mlagents"]
+            env = {**os.environ, "PYTHONPATH": str(args.anchor / "shim")}
+            if subprocess.run(theirs, env=env, cwd=ROOT).returncode != 0:
+                failed.append(seed)
+    print("agree" if not failed else f"DIFFER for seeds {failed}")
+    sys.exit(1 if failed else 0)
+
+
+if __name__ == "__main__":
+    main()
