@@ -92,3 +92,28 @@ def test_a_ray_whose_internals_moved_still_starts_the_plain_way(monkeypatch):
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     local_ray.init_local_ray(2)
     assert calls == [False, True]  # the lean try, then Ray as it comes
+
+
+def test_asking_for_the_dashboard_starts_rays_full_head(monkeypatch):
+    import ray
+    import ray._private.node
+
+    from rollout import local_ray
+    from rollout.cli import build_parser
+
+    plain = ray._private.node.Node
+    calls: list[tuple[bool, bool]] = []
+    monkeypatch.setattr(
+        ray,
+        "init",
+        lambda **kwargs: calls.append(
+            (kwargs["include_dashboard"], ray._private.node.Node is plain)
+        ),
+    )
+    args = build_parser().parse_args(["train", "--dashboard"])
+    starting = local_ray.BackgroundRay(2, args.dashboard)
+    starting.wait()
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    starting.shutdown()
+    assert calls == [(True, True)]  # Ray's own node, dashboard on
+    assert build_parser().parse_args(["train"]).dashboard is False
