@@ -46,6 +46,7 @@ RUN apt-get update \
 WORKDIR /opt/unity-rollout
 COPY pyproject.toml setup.py constraints.txt README.md ./
 COPY scripts/setup-venv.sh scripts/check-torch-index.py scripts/docker-entrypoint.sh scripts/
+COPY batches/ batches/
 COPY rollout/ rollout/
 COPY learners/ learners/
 COPY unitysim/ unitysim/

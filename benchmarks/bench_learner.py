@@ -28,11 +28,11 @@ from machine import machine  # benchmarks/machine.py
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
 from mlagents_envs.base_env import ObservationType as Obs
 
+from batches import keys
+from batches.specs import spec_to_dict, step_spec
 from learners.config import CONFIG_DIR, RunConfig, load_config
 from learners.devices import Compute
 from learners.learner import CentralLearner
-from rollout import keys
-from rollout.specs import spec_to_dict, step_spec
 
 PLAIN = (DimensionProperty.NONE,)
 IMAGE = (DimensionProperty.NONE, *(DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,) * 2)

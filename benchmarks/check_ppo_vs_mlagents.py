@@ -65,11 +65,11 @@ def ours(seed: int, out: Path) -> None:
         ObservationType,
     )
 
+    from batches import keys
+    from batches.specs import log_prob_size, spec_to_dict, step_spec
     from learners.config import load_config
     from learners.policies import ActorCritic
     from learners.ppo import PPO
-    from rollout import keys
-    from rollout.specs import log_prob_size, spec_to_dict, step_spec
 
     settings = load_config(CONFIG).for_behavior(BEHAVIOR)
     horizon = settings.time_horizon

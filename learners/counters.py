@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
+    from batches.segment import Segment
     from learners.config import RunConfig
-    from rollout.segments import Segment
 
 
 def all_done(steps: Mapping[str, int], config: RunConfig, max_steps: int | None) -> bool:

@@ -21,6 +21,7 @@ from tensordict import TensorDict
 from torchrl.objectives import A2CLoss
 from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
+from batches import keys
 from learners.devices import Compute
 from learners.modules import FLAT_ACTION, obs_keys, probabilistic_actor, value_operator
 from learners.onpolicy import (
@@ -32,7 +33,6 @@ from learners.onpolicy import (
 )
 from learners.policies import ActorCritic
 from learners.schedules import decay
-from rollout import keys
 
 if TYPE_CHECKING:
     from learners.config import TrainerSettings

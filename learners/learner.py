@@ -21,14 +21,14 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 import torch
 
+from batches import keys
+from batches.segment import Segment
+from batches.specs import spec_from_dict
 from learners import checkpoint
 from learners.acting import base_name, policy_factory
 from learners.counters import LearnerStats, Sources, all_done
 from learners.devices import Compute, to_cpu
 from learners.policies import ActorCritic, numpy_state
-from rollout import keys
-from rollout.segments import Segment
-from rollout.specs import spec_from_dict
 
 if TYPE_CHECKING:  # tensordict only where segments arrive: the driver never loads it
     from tensordict import TensorDict

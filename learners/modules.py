@@ -24,8 +24,8 @@ from torch import nn
 from torch.distributions import Distribution, Normal
 from torchrl.modules import MaskedCategorical
 
+from batches import keys
 from learners.policies import ActorCritic
-from rollout import keys
 
 FLAT_ACTION = "flat_action"
 PARAM_KEYS = ("loc", "scale", "logits")

@@ -14,11 +14,11 @@ from collections.abc import Mapping
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from batches import keys
 from learners.counters import on_policy_wanted
 from learners.devices import Compute
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
-from rollout import keys
 
 TRAIN = "train"  # bool per step: counts in the loss (False: context for the estimator only)
 

@@ -35,6 +35,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.objectives.value import GAE
 
+from batches import keys
 from learners.devices import Compute
 from learners.modules import value_operator
 from learners.onpolicy import (
@@ -47,7 +48,6 @@ from learners.onpolicy import (
 )
 from learners.policies import ActorCritic
 from learners.schedules import BETA_END, EPSILON_END, decay
-from rollout import keys
 
 if TYPE_CHECKING:
     from learners.config import TrainerSettings

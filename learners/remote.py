@@ -20,9 +20,9 @@ import os
 import threading
 from typing import TYPE_CHECKING, Any
 
+from batches import keys
+from batches.segment import Segment
 from learners.counters import LearnerStats, Sources, all_done, on_policy_wanted
-from rollout import keys
-from rollout.segments import Segment
 
 if TYPE_CHECKING:
     from tensordict import TensorDict

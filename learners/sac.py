@@ -38,11 +38,11 @@ from torch import nn
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import TanhNormal
 
+from batches import keys
 from learners.devices import Compute
 from learners.modules import PolicyParams
 from learners.policies import ActorCritic, SensorEncoder
 from learners.schedules import decay
-from rollout import keys
 
 if TYPE_CHECKING:
     from learners.config import TrainerSettings

@@ -25,9 +25,10 @@ from typing import Any, Protocol
 import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
+from batches.segment import Segment
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
-from rollout.segments import Decisions, Segment, SegmentBuilder, allowed_mask
+from rollout.segments import Decisions, SegmentBuilder, allowed_mask
 from rollout.unity import (
     RECOVERABLE,
     UnityConfig,

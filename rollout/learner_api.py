@@ -15,8 +15,8 @@ from __future__ import annotations
 
 from typing import Protocol
 
+from batches.segment import Segment
 from rollout.collector import Weights
-from rollout.segments import Segment
 
 
 class Learner(Protocol):

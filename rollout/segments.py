@@ -19,17 +19,13 @@ per-slot buffers, never a Python loop over agents.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
 
-from rollout import keys, specs
-
-if TYPE_CHECKING:
-    from tensordict import TensorDict
+from batches import keys, specs
+from batches.segment import Segment
 
 INITIAL_SLOTS = 16
 STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
@@ -43,68 +39,6 @@ class Decisions:
     continuous: np.ndarray  # float32 (n, continuous size)
     discrete: np.ndarray  # int64 (n, branches)
     log_prob: np.ndarray  # float32 (n, continuous size + branches): one per component
-
-
-@dataclass(frozen=True)
-class Segment:
-    """One behavior's packed trajectories on their way from a worker to the learner: numpy
-    arrays ``[N, ...]`` under the keys of docs/batch-format.md, nested as the learner's
-    TensorDict will be, with the behavior's name and spec. The rollout side needs no torch:
-    importing torch, tensordict and torchrl was most of a worker's start (3 s of 3.5 on 2
-    cores) and of its memory. The learner takes it ``to_tensordict``."""
-
-    behavior: str
-    spec: dict[str, Any]  # specs.spec_to_dict
-    data: Mapping[str, Any]  # key -> array, or -> a mapping of the same kind
-    # (worker incarnation, collect number): the learner takes each source once, although
-    # Ray may deliver a task's result twice (retries)
-    source: tuple[str, int] | None = None
-
-    def __len__(self) -> int:
-        return len(self.data[keys.POLICY_VERSION])
-
-    @property
-    def nbytes(self) -> int:
-        sizes: list[int] = []
-        _walk(lambda a: sizes.append(a.nbytes) or a, self.data)
-        return sum(sizes)
-
-    def to_tensordict(self) -> TensorDict:
-        """The learner's view: tensors sharing the arrays' memory (a copy only where Ray's
-        object store handed over read-only arrays), behavior and spec as non-tensors."""
-        import torch
-        from tensordict import TensorDict
-
-        def tensor(array: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.require(array, requirements="W"))
-
-        batch = TensorDict(_walk(tensor, self.data), batch_size=[len(self)])
-        batch.set_non_tensor(keys.BEHAVIOR, self.behavior)
-        batch.set_non_tensor(keys.SPEC, self.spec)
-        return batch
-
-    @staticmethod
-    def concat(parts: Sequence[Segment]) -> Segment:
-        """Segments of one behavior, one after the other."""
-        if len(parts) == 1:
-            return parts[0]
-
-        def join(*arrays: np.ndarray) -> np.ndarray:
-            return np.concatenate(arrays)
-
-        first = parts[0]
-        data = _walk(join, *(p.data for p in parts))
-        return Segment(first.behavior, first.spec, data, first.source)
-
-
-def _walk(fn: Callable[..., Any], *trees: Mapping[str, Any]) -> dict[str, Any]:
-    """``fn`` on the arrays at the same place in nested mappings of the same shape."""
-    return {
-        key: _walk(fn, *(t[key] for t in trees))
-        if isinstance(value, Mapping)
-        else fn(*(t[key] for t in trees))
-        for key, value in trees[0].items()
-    }
 
 
 @dataclass

@@ -11,7 +11,7 @@ from typing import Any
 import ray
 from ray.exceptions import RayActorError
 
-from rollout import keys
+from batches import keys
 from rollout.collector import CollectorMetrics
 from rollout.ledger import SHUTDOWN
 

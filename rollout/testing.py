@@ -18,11 +18,11 @@ from collections import Counter
 
 import numpy as np
 
-from rollout import keys
+from batches import keys
+from batches.segment import Segment
 from rollout.collector import ActorFactory, Collector, CollectorMetrics, Weights
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator, PortRange
-from rollout.segments import Segment
 from rollout.unity import UnityConfig
 
 

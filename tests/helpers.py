@@ -18,7 +18,7 @@ import psutil
 import torch
 from tensordict import TensorDict
 
-from rollout import keys
+from batches import keys
 from rollout.ports import PortAllocator, PortRange, ephemeral_range
 
 # Above the kernel's ephemeral range (32768-60999 by default): no outgoing connection (a

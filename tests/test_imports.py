@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("rollout", "learners", "unitysim")
+PACKAGES = ("batches", "rollout", "learners", "unitysim")
 
 SCRIPT = """
 import importlib, json, pkgutil, sys

@@ -7,8 +7,8 @@ from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, 
 from mlagents_envs.base_env import ObservationType as Obs
 from tensordict import TensorDict
 
-from rollout import keys
-from rollout.specs import log_prob_size, spec_to_dict, step_spec
+from batches import keys
+from batches.specs import log_prob_size, spec_to_dict, step_spec
 
 VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
 GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 import torch
 
+from batches import keys
+from batches.segment import Segment
 from learners.acting import NetworkSettings
 from learners.config import defaults, parse_config
 from learners.impala import IMPALA
@@ -18,8 +20,6 @@ from learners.learner import CentralLearner, Sources, policy_lag
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
 from learners.ppo import PPO, Steps
-from rollout import keys
-from rollout.segments import Segment
 from tests.learners.fakes import segment, vector_spec
 
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec
 
+from batches import keys
 from learners.config import ConfigError, parse_config
 from learners.devices import Compute, DeviceError, check_device, learner_device, to_cpu
 from learners.learner import CentralLearner
-from rollout import keys
 from tests.learners.fakes import IMAGE, VECTOR, segment
 
 

@@ -12,11 +12,11 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from batches import keys
+from batches.specs import spec_from_dict, step_spec
 from learners.acting import actor_factory
-from rollout import keys
 from rollout.collector import NO_AGENT_STEPS, Collector
 from rollout.restarts import RestartPolicy
-from rollout.specs import spec_from_dict, step_spec
 from rollout.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import leak_checked_allocator, trajectories
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from rollout import keys
-from rollout.segments import Segment
-from rollout.specs import spec_from_dict, spec_to_dict, step_spec
+from batches import keys
+from batches.segment import Segment
+from batches.specs import spec_from_dict, spec_to_dict, step_spec
 from tests.learners.fakes import segment as fake_segment
 from tests.learners.fakes import vector_spec
 

@@ -12,12 +12,12 @@ import pytest
 import torch
 from ray.exceptions import ActorUnavailableError, RayTaskError
 
+from batches import keys
+from batches.specs import step_spec
 from learners.acting import actor_factory
-from rollout import keys
 from rollout.ports import PortAllocator, PortRange
 from rollout.restarts import RestartPolicy
 from rollout.service import REPORT_WAIT_S, RolloutError, RolloutService, ServiceConfig
-from rollout.specs import step_spec
 from rollout.testing import CountingLearner, SyntheticWorker
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker, WeightsLost

@@ -19,7 +19,7 @@ from mlagents_envs.base_env import (
     ObservationType,
 )
 
-from rollout import keys
+from batches import keys
 
 if TYPE_CHECKING:
     from torchrl.data import Composite
