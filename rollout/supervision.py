@@ -57,8 +57,9 @@ class WorkerSupervision:
         """A collect raised ``error`` instead of returning segments; returns 0 (routed)."""
         if isinstance(error, RayTaskError):  # collect raised: e.g. Unity's budget is spent
             cause = getattr(error, "cause", None) or error
-            if isinstance(cause, WeightsLost):  # restarted while idle: resend the weights
-                self._count_failure(index, error)
+            if isinstance(cause, WeightsLost):  # restarted: resend the weights
+                if index not in self._restarting:  # a death not seen yet (it was idle)
+                    self._count_failure(index, error)
                 self._idle.add(index)
                 return 0
             raise RolloutError(f"worker {index}: {last_line(cause)}") from None
