@@ -3,8 +3,9 @@
 Each run is a fresh Python process (a warm interpreter would hide the imports): it
 starts Ray, then three actors, and reports the seconds of ``ray.init``, of the actors'
 first answers, and the CPU seconds Ray's processes used by then. The two kinds run
-interleaved, ``--rounds`` pairs. ``plain`` is ``ray.init`` with local mode's options
-and Ray's dashboard setting left off; ``lean`` is ``rollout.local_ray.init_local_ray``.
+interleaved, ``--rounds`` pairs. Both call ``rollout.local_ray.init_local_ray`` (the
+same options); ``plain`` with its ``_lean_head`` replaced by a no-op, so Ray starts its
+full head, ``lean`` as local mode runs it.
 
     .venv/bin/python benchmarks/bench_ray_start.py --rounds 5
 """
@@ -23,17 +24,13 @@ from machine import machine  # benchmarks/machine.py
 ROOT = Path(__file__).resolve().parent.parent
 
 ONE_RUN = """
-import json, os, sys, time
-started = time.perf_counter()
+import contextlib, json, os, sys, time
 import psutil, ray
 from rollout import local_ray
-if sys.argv[1] == "lean":
-    begin = time.perf_counter()
-    local_ray.init_local_ray(2)
-else:
-    begin = time.perf_counter()
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-             _system_config={"worker_niceness": 0})
+if sys.argv[1] == "plain":
+    local_ray._lean_head = contextlib.nullcontext
+begin = time.perf_counter()
+local_ray.init_local_ray(2)
 up = time.perf_counter()
 
 @ray.remote(num_cpus=0)
