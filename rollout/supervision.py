@@ -55,6 +55,12 @@ class WorkerSupervision:
 
     def _collect_failed(self, index: int, ref: Any, error: Exception) -> int:
         """A collect raised ``error`` instead of returning segments; returns 0 (routed)."""
+        if self._learner_died(error):  # its weights argument, or the learner it fed, died
+            self._stale.discard(ref)
+            self._idle.add(index)  # the worker never ran it: it acts on with what it had
+            if error.actor_id in self._dead_learners:  # type: ignore[attr-defined]
+                return 0  # one that was replaced already
+            raise LearnerDied(last_line(error)) from None
         if isinstance(error, RayTaskError):  # collect raised: e.g. Unity's budget is spent
             cause = getattr(error, "cause", None) or error
             if isinstance(cause, WeightsLost):  # restarted: resend the weights
@@ -79,12 +85,6 @@ class WorkerSupervision:
         if not isinstance(error, RayActorError | ObjectLostError):  # lost: with its node
             raise error
         self._stale.discard(ref)
-        died = getattr(error, "actor_id", None)
-        if died == self.learner._actor_id.hex() or died in self._dead_learners:
-            self._idle.add(index)  # the weights it was sent died with a learner
-            if died in self._dead_learners:
-                return 0  # one that was replaced already
-            raise LearnerDied(last_line(error)) from None
         if self.membership is not None:
             self._retire(index, error)
             return 0
@@ -92,6 +92,15 @@ class WorkerSupervision:
         self._count_failure(index, error)
         self._idle.add(index)
         return 0
+
+    def _learner_died(self, error: Exception) -> bool:
+        """Whether ``error`` is a learner's death, this one's or a replaced one's. A collect
+        sent the weights a learner had not finished publishing fails on that argument with
+        ``RayTaskError(ActorDiedError)``: a task error and the learner's death at once."""
+        died = getattr(error, "actor_id", None) if isinstance(error, RayActorError) else None
+        return died is not None and (
+            died == self.learner._actor_id.hex() or died in self._dead_learners
+        )
 
     def _grow(self) -> None:
         """Elastic: start a worker for each slot the cluster gained (first weights with

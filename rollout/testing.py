@@ -3,9 +3,9 @@
 It consumes segments, counts what it got (steps, trajectories, bytes, the policy versions
 that acted), and publishes a new weights version every ``bump_every`` submissions, or, with
 a ``demand``, once that many steps came since the last version (as an on-policy learner
-would, "updating" for ``update_seconds``). The weights themselves are empty: workers keep
-their own and stamp the newer version, so tests and benchmarks can see versions reach the
-workers and measure policy lag.
+would, "updating" for ``update_seconds``); handing out a new version takes ``weights_seconds``.
+The weights themselves are empty: workers keep their own and stamp the newer version, so
+tests and benchmarks can see versions reach the workers and measure policy lag.
 """
 
 from __future__ import annotations
@@ -28,10 +28,15 @@ from rollout.unity import UnityConfig
 
 class CountingLearner:
     def __init__(
-        self, bump_every: int = 2, demand: int | None = None, update_seconds: float = 0.0
+        self,
+        bump_every: int = 2,
+        demand: int | None = None,
+        update_seconds: float = 0.0,
+        weights_seconds: float = 0.0,
     ) -> None:
         self.bump_every = bump_every
         self.demand, self.update_seconds = demand, update_seconds
+        self.weights_seconds = weights_seconds  # publishing takes this long
         self.since_bump = 0  # steps since the last version (with a demand)
         self.version = 0
         self.submissions = 0
@@ -61,6 +66,8 @@ class CountingLearner:
         return None if self.demand is None else self.demand - self.since_bump
 
     def weights(self) -> tuple[int, Weights]:
+        if self.version > 0:  # a new version (the first weights go out at the start)
+            time.sleep(self.weights_seconds)
         return self.version, {}
 
     def summary(self) -> dict:

@@ -330,7 +330,10 @@ def _run(
                 if checkpoints.due(sum(progress["steps"].values())):
                     checkpoints.save(ray.get(learner.state_dict.remote()), meta)
             except RolloutError:  # keep what was learned, then report the cause
-                checkpoints.save(ray.get(keeper.learner.state_dict.remote()), meta)
+                try:
+                    checkpoints.save(ray.get(keeper.learner.state_dict.remote()), meta)
+                except RayActorError:  # the learner is gone too: its last checkpoint stays
+                    log.warning("no final checkpoint: the learner died with the run")
                 raise
             except (LearnerDied, RayActorError) as error:  # only the learner's calls raise it
                 keeper.restore(service, _cause(error))

@@ -1,14 +1,15 @@
 """How a worker's failures are counted, without Ray running: one death is one failure,
-whatever errors its restart shows on the way."""
+whatever errors its restart shows on the way; a learner's death is the learner's, also when
+a collect shows it as a task error."""
 
 from __future__ import annotations
 
 from types import SimpleNamespace
 
 import pytest
-from ray.exceptions import ActorUnavailableError, RayTaskError
+from ray.exceptions import ActorDiedError, ActorUnavailableError, RayTaskError
 
-from rollout.service_config import RolloutError
+from rollout.service_config import LearnerDied, RolloutError
 from rollout.supervision import WorkerSupervision
 from rollout.worker import WeightsLost
 
@@ -21,6 +22,8 @@ def supervisor(max_restarts: int) -> WorkerSupervision:
     s.membership = None
     s._idle, s._failures, s._restarting, s._retry_at = set(), [0], {}, {}
     s._worker_version = [20]
+    s.learner = SimpleNamespace(_actor_id=bytes.fromhex("1e"))
+    s._dead_learners, s._stale = {"de"}, set()
     return s
 
 
@@ -43,3 +46,26 @@ def test_a_restart_while_idle_is_seen_only_as_weights_lost_and_counts():
     assert s.metrics.worker_restarts == 1
     with pytest.raises(RolloutError, match="worker 0 failed 2 times in a row"):
         s._collect_failed(0, None, weights_lost())  # a second death, not seen otherwise
+
+
+def died_under_the_argument(learner: str) -> RayTaskError:
+    """What Ray raised (ray 2.60, tried) for a collect sent the weights ``learner.weights``
+    had not yet returned when that learner was SIGKILLed."""
+    death = ActorDiedError()
+    death.actor_id = learner
+    return RayTaskError("collect", "traceback", death, actor_id="0a").as_instanceof_cause()
+
+
+def test_a_collect_failed_on_a_dying_learners_weights_is_the_learners_death():
+    s = supervisor(max_restarts=1)
+    with pytest.raises(LearnerDied):
+        s._collect_failed(0, None, died_under_the_argument("1e"))
+    assert s.metrics.worker_restarts == 0 and 0 in s._idle  # not the worker's failure
+    assert s._collect_failed(0, None, died_under_the_argument("de")) == 0  # replaced already
+
+
+def test_a_collect_that_raised_in_the_worker_ends_the_run_naming_it():
+    s = supervisor(max_restarts=1)
+    error = RayTaskError("collect", "traceback", RuntimeError("restart budget spent"))
+    with pytest.raises(RolloutError, match=r"worker 0: .*restart budget spent"):
+        s._collect_failed(0, None, error)
