@@ -55,10 +55,10 @@ class WorkerSupervision:
 
     def _collect_failed(self, index: int, ref: Any, error: Exception) -> int:
         """A collect raised ``error`` instead of returning segments; returns 0 (routed)."""
-        if self._learner_died(error):  # its weights argument, or the learner it fed, died
+        if (learner := self._dead_learner(error)) is not None:  # the weights it was sent
             self._stale.discard(ref)
             self._idle.add(index)  # the worker never ran it: it acts on with what it had
-            if error.actor_id in self._dead_learners:  # type: ignore[attr-defined]
+            if learner in self._dead_learners:
                 return 0  # one that was replaced already
             raise LearnerDied(last_line(error)) from None
         if isinstance(error, RayTaskError):  # collect raised: e.g. Unity's budget is spent
@@ -93,14 +93,16 @@ class WorkerSupervision:
         self._idle.add(index)
         return 0
 
-    def _learner_died(self, error: Exception) -> bool:
-        """Whether ``error`` is a learner's death, this one's or a replaced one's. A collect
-        sent the weights a learner had not finished publishing fails on that argument with
-        ``RayTaskError(ActorDiedError)``: a task error and the learner's death at once."""
+    def _dead_learner(self, error: Exception) -> str | None:
+        """The actor id of the learner (this one or a replaced one) whose death ``error`` is,
+        or None. A collect sent the weights a learner had not finished publishing fails on
+        that argument as ``RayTaskError(ActorDiedError)``: a task error and its death at once."""
         died = getattr(error, "actor_id", None) if isinstance(error, RayActorError) else None
-        return died is not None and (
+        if died is not None and (
             died == self.learner._actor_id.hex() or died in self._dead_learners
-        )
+        ):
+            return died
+        return None
 
     def _grow(self) -> None:
         """Elastic: start a worker for each slot the cluster gained (first weights with
