@@ -47,8 +47,11 @@ WORKDIR /opt/unity-rollout
 COPY pyproject.toml setup.py constraints.txt README.md ./
 COPY scripts/setup-venv.sh scripts/check-torch-index.py scripts/docker-entrypoint.sh scripts/
 COPY batches/ batches/
-COPY rollout/ rollout/
+COPY driver/ driver/
+COPY gymnasium_adapters/ gymnasium_adapters/
 COPY learners/ learners/
+COPY mlagents_compat/ mlagents_compat/
+COPY rollout/ rollout/
 COPY unitysim/ unitysim/
 COPY config/ config/
 
@@ -133,7 +136,7 @@ VOLUME ["/workspace/results"]
 WORKDIR /workspace
 USER 1000:1000
 
-# Liveness of the installed stack: the interpreter, mlagents-envs through rollout.compat,
+# Liveness of the installed stack: the interpreter, mlagents-envs through mlagents_compat,
 # protobuf's backend (well under a second).
 HEALTHCHECK --interval=60s --timeout=20s --start-period=20s --retries=3 \
     CMD ["unity-rollout", "doctor"]

@@ -29,7 +29,7 @@ REWARD = re.compile(r"Step: (\d+)\. Time Elapsed: [\d.]+ s\. Mean Reward: ([\d.-
 
 
 def run(ahead: int, seed: int, args: argparse.Namespace) -> dict[str, Any]:
-    command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress", "--seed", str(seed)]
+    command = [sys.executable, "-m", "driver.cli", "train", "--no-progress", "--seed", str(seed)]
     command += ["--workers", str(args.workers), "--collect-ahead", str(ahead)]
     command += ["--results-dir", tempfile.mkdtemp(prefix="bench-ahead-")]
     command += ["--max-steps", str(args.max_steps), "--max-seconds", str(args.max_seconds)]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -28,14 +29,17 @@ import psutil
 import ray
 from machine import machine  # benchmarks/machine.py
 
-from learners.acting import actor_factory, policy_factory
+from driver.counting_learner import CountingLearner
 from learners.config import CONFIG_DIR, load_config
+from learners.factory import actor_factory, policy_factory
 from learners.remote import learner_actor
 from rollout.collector import Collector
 from rollout.ports import PortAllocator
 from rollout.service import RolloutService, ServiceConfig
-from rollout.testing import CountingLearner, SyntheticWorker, replayed
 from rollout.unity import UnityConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # testkit: not installed
+from testkit.synthetic import SyntheticWorker, replayed
 
 UNITY = UnityConfig("unitysim:3DBall")
 LEARNER_CONFIGS = {"ppo": "3DBall.yaml", "impala": "3DBall_impala.yaml"}

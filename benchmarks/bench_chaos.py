@@ -1,5 +1,5 @@
 """Chaos benchmark: 3DBall with 2 workers, ML-Agents' own PPO config, while faults keep coming
-(``rollout/chaos.py``): a Unity player SIGKILLed every 30 s, a rollout worker SIGKILLed every
+(``testkit/chaos.py``): a Unity player SIGKILLed every 30 s, a rollout worker SIGKILLed every
 2 min, a player hung (SIGSTOP) every 90 s, the learner SIGKILLed once.
 
 Two parts, in one invocation:
@@ -40,7 +40,7 @@ from machine import machine  # benchmarks/machine.py
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-from rollout.chaos import ChaosDriver, Fault, issue_schedule  # noqa: E402
+from testkit.chaos import ChaosDriver, Fault, issue_schedule  # noqa: E402
 
 CONFIG = ROOT / "benchmarks/mlagents_configs/ppo_3DBall.yaml"
 REWARD = re.compile(r"Step: (\d+)\. .*Mean Reward: ([\d.]+)\.")
@@ -61,7 +61,7 @@ def marked(marker: str) -> list[psutil.Process]:
 def run(schedule: list[Fault], seconds: float, stop_at_90: bool, timeout_wait: int) -> dict:
     """One ``unity-rollout train``; the reward summaries it printed, as (s, step, reward)."""
     results, marker = Path(tempfile.mkdtemp(prefix="chaos-")), uuid.uuid4().hex
-    command = [sys.executable, "-m", "rollout.cli", "train", "--no-progress", "--config"]
+    command = [sys.executable, "-m", "driver.cli", "train", "--no-progress", "--config"]
     command += [str(CONFIG), "--results-dir", str(results), "--max-steps", "100000000"]
     command += ["--max-seconds", str(seconds), "--timeout-wait", str(timeout_wait)]
     started = time.monotonic()

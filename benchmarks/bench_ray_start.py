@@ -3,7 +3,7 @@
 Each run is a fresh Python process (a warm interpreter would hide the imports): it
 starts Ray, then three actors, and reports the seconds of ``ray.init``, of the actors'
 first answers, and the CPU seconds Ray's processes used by then. The two kinds run
-interleaved, ``--rounds`` pairs. Both call ``rollout.local_ray.init_local_ray`` (the
+interleaved, ``--rounds`` pairs. Both call ``driver.local_ray.init_local_ray`` (the
 same options); ``plain`` with its ``_lean_head`` replaced by a no-op, so Ray starts its
 full head, ``lean`` as local mode runs it.
 
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 ONE_RUN = """
 import contextlib, json, os, sys, time
 import psutil, ray
-from rollout import local_ray
+from driver import local_ray
 if sys.argv[1] == "plain":
     local_ray._lean_head = contextlib.nullcontext
 begin = time.perf_counter()

@@ -13,7 +13,7 @@ With ``--env AnimalArena`` or ``GridWorld``: what camera observations cost on th
 
 from __future__ import annotations
 
-import rollout.compat  # noqa: F401  (first: makes mlagents-envs import on modern protobuf)
+import mlagents_compat  # noqa: F401  (first: makes mlagents-envs import on modern protobuf)
 
 # isort: split
 
@@ -27,7 +27,7 @@ import torch
 from machine import machine  # benchmarks/machine.py
 from mlagents_envs.environment import UnityEnvironment
 
-from learners.acting import actor_factory
+from learners.factory import actor_factory
 from rollout.collector import Collector
 from rollout.ports import PortAllocator
 from rollout.unity import UnityConfig
@@ -105,8 +105,8 @@ def service_run(build_name: str, workers: int, seconds: float, registry: str) ->
     import psutil
     import ray
 
+    from driver.counting_learner import CountingLearner
     from rollout.service import RolloutService, ServiceConfig
-    from rollout.testing import CountingLearner
 
     learner = ray.remote(CountingLearner).options(num_cpus=0).remote(bump_every=4)
     config = ServiceConfig(

@@ -1,6 +1,6 @@
 """Scaling at real Unity speed: unitysim 3DBall answering every exchange ``--delay-ms`` late
 (as a build at 1000/D exchanges per second), collected by 1, 2, 4, 8 and 16 Ray workers,
-once into the counting learner (``rollout/testing.py``: routing only) and once into the
+once into the counting learner (``driver/counting_learner.py``: routing only) and once into the
 real central learner (PPO, ``config/3DBall.yaml``), once as mlagents-learn's environments
 wait for each update and once collecting through it (``ppo+ahead``: ``--collect-ahead``
 of one buffer).
@@ -31,11 +31,11 @@ import psutil
 import ray
 from machine import machine  # benchmarks/machine.py
 
-from learners.acting import actor_factory, policy_factory
+from driver.counting_learner import CountingLearner
 from learners.config import CONFIG_DIR, load_config
+from learners.factory import actor_factory, policy_factory
 from learners.remote import learner_actor
 from rollout.service import RolloutService, ServiceConfig
-from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
 
 # ppo+ahead: workers go on collecting through each update (``--collect-ahead``, one buffer)

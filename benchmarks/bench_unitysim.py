@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import psutil
 
-from rollout import compat
+import mlagents_compat as compat
 
 compat.install()
 

@@ -1,10 +1,10 @@
 """Acting without torch: what a rollout worker needs of a policy, in numpy.
 
 A worker process that never imports torch starts 1.3 s of CPU sooner and stays about
-180 MB smaller. So the policy factory that travels to workers lives here, the initial
-weights of the layers a worker acts with are drawn here (with numpy, from the run's seed
-and the behavior's name, the same in the learner and in every worker), and the learner
-publishes its weights as numpy arrays. :class:`NumpyActor` mirrors
+180 MB smaller. So the initial weights of the layers a worker acts with are drawn here
+(with numpy; ``learners.factory`` seeds them from the run's seed and the behavior's name,
+the same in the learner and in every worker), and the learner publishes its weights as
+numpy arrays. :class:`NumpyActor` mirrors
 ``learners.policies.ActorCritic.act`` for vector observations; behaviors with images or
 hyper-conditioned goals act through the torch network (``learners.policies.TorchActor``),
 whose process then loads torch.
@@ -15,47 +15,19 @@ Weight names are ``ActorCritic.state_dict()``'s, so one dict serves both.
 from __future__ import annotations
 
 import math
-import zlib
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
 
-if TYPE_CHECKING:
-    from learners.config import RunConfig, TrainerSettings
-    from learners.policies import ActorCritic, TorchActor
+from learners.settings import NetworkSettings
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # conditional_sigma clamp (ML-Agents' range)
 ACTION_CLIP = 3.0  # unsquashed samples reach Unity as clamp(a, -3, 3) / 3 (ML-Agents)
 NORM_CLIP = 5.0  # normalized observations are clipped to +-5 (ML-Agents)
-
-
-@dataclass(frozen=True)
-class NetworkSettings:
-    """ML-Agents ``network_settings``: hidden units and layers of the shared trunk."""
-
-    hidden_units: int = 128
-    num_layers: int = 2
-    normalize: bool = False  # running mean/variance normalization of vector observations
-    # "hyper": goal signals (ObservationType.GOAL_SIGNAL) condition the other features
-    # multiplicatively (one set of trunk weights per goal dimension, what ML-Agents'
-    # hypernetwork achieves); "none": goal signals are ordinary inputs.
-    goal_conditioning_type: str = "hyper"
-    # ML-Agents' image encoder (learners.encoders): simple, nature_cnn, resnet, match3 or
-    # fully_connected; each ends in a dense layer to hidden_units.
-    vis_encode_type: str = "simple"
-    # Not config keys: set by the learner's policy factory for SAC behaviors.
-    tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
-    conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter
-
-
-def base_name(behavior: str) -> str:
-    """``3DBall?team=0`` -> ``3DBall``: trainer configs name behaviors without the team."""
-    return behavior.split("?", 1)[0]
 
 
 def is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
@@ -249,70 +221,3 @@ class NumpyActor:
             discrete = np.stack(picks, axis=-1).astype(np.int64)
         log_prob = np.concatenate(log_probs, axis=1).astype(np.float32)
         return continuous.astype(np.float32), discrete, log_prob
-
-
-@dataclass(frozen=True)
-class PolicyFactory:
-    """Builds a behavior's policy the same way on the learner and in every worker, down
-    to the initial weights (drawn from ``seed`` and the behavior's name): before the first
-    update every worker acts with the very policy the learner will improve, as
-    mlagents-learn's one policy does, so the first update's ratios start at 1.
-
-    Picklable without torch, so the service ships it to workers; ``settings`` is keyed by
-    the behavior name without ``?team=``, as in trainer configs.
-    """
-
-    settings: Mapping[str, NetworkSettings] = field(default_factory=dict)
-    default: NetworkSettings = NetworkSettings()
-    seed: int = 0
-
-    def settings_for(self, behavior: str) -> NetworkSettings:
-        return self.settings.get(base_name(behavior), self.default)
-
-    def _key(self, behavior: str) -> int:
-        return zlib.crc32(f"{self.seed}/{behavior}".encode())
-
-    def initial_weights(self, behavior: str, spec: BehaviorSpec) -> dict[str, np.ndarray]:
-        rng = np.random.default_rng(self._key(behavior))
-        return initial_weights(spec, self.settings_for(behavior), rng)
-
-    def network(self, behavior: str, spec: BehaviorSpec) -> ActorCritic:
-        """The learner's ``ActorCritic`` (loads torch), starting from ``initial_weights``.
-        An image below its encoder's minimum size fails here, naming the behavior."""
-        from learners.encoders import ImageTooSmall
-        from learners.policies import seeded_network
-
-        initial = self.initial_weights(behavior, spec)
-        try:
-            return seeded_network(spec, self.settings_for(behavior), self._key(behavior), initial)
-        except ImageTooSmall as error:
-            raise ImageTooSmall(f"behavior {base_name(behavior)} {error}") from None
-
-    def __call__(self, behavior: str, spec: BehaviorSpec) -> NumpyActor | TorchActor:
-        settings = self.settings_for(behavior)
-        if acts_in_numpy(spec, settings):
-            return NumpyActor(spec, settings, self.initial_weights(behavior, spec))
-        from learners.policies import TorchActor  # images: this worker needs torch
-
-        return TorchActor(self.network(behavior, spec))
-
-
-def network_settings(settings: TrainerSettings) -> NetworkSettings:
-    """A behavior's network settings; SAC behaviors get ML-Agents' squashed policy
-    (``tanh_squash``, ``conditional_sigma``), in the learner and in every worker alike."""
-    if settings.trainer_type == "sac":
-        return replace(settings.network_settings, tanh_squash=True, conditional_sigma=True)
-    return settings.network_settings
-
-
-def policy_factory(config: RunConfig, seed: int = 0) -> PolicyFactory:
-    """The factory workers and learner share: network settings of each configured behavior,
-    initial weights from the run's seed."""
-    return PolicyFactory(
-        {name: network_settings(s) for name, s in config.behaviors.items()},
-        network_settings(config.default),
-        seed,
-    )
-
-
-actor_factory = PolicyFactory()  # default networks: what tests and `collect` use

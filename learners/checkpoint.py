@@ -23,8 +23,8 @@ from typing import Any
 import torch
 
 from batches.specs import spec_from_dict, spec_to_dict
-from learners.acting import NetworkSettings
 from learners.policies import ActorCritic
+from learners.settings import NetworkSettings
 
 __all__ = ["latest", "load", "networks", "save", "spec_from_dict", "spec_to_dict"]
 

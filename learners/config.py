@@ -28,14 +28,12 @@ from typing import Any
 
 import yaml
 
-from learners.acting import NetworkSettings, base_name
+from batches.contracts import base_name
 from learners.config_keys import (
     ALWAYS,
     ENGINE,
     ENGINE_UNSUPPORTED,
     EXTRINSIC,
-    HYPER,
-    HYPER_UNSUPPORTED,
     NETWORK,
     NETWORK_UNSUPPORTED,
     REWARD_UNSUPPORTED,
@@ -49,96 +47,31 @@ from learners.config_keys import (
     show,
 )
 from learners.devices import DeviceError, check_device
+from learners.settings import RunConfig, TrainerSettings
+from learners.trainers import TRAINERS
 
 logger = logging.getLogger(__name__)
 
-TRAINER_TYPES = ("ppo", "sac", "impala")
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 UNITYSIM_PREFIX = "unitysim:"
 
 
-@dataclass(frozen=True)
-class Hyperparameters:
-    """``hyperparameters:`` of every trainer type; fields a trainer does not use keep defaults."""
-
-    batch_size: int = 1024
-    buffer_size: int = 10240
-    learning_rate: float = 3.0e-4
-    learning_rate_schedule: str = "linear"  # "linear" | "constant"
-    # PPO and IMPALA
-    beta: float = 5.0e-3  # entropy coefficient
-    epsilon: float = 0.2  # PPO clip (policy ratio and value change)
-    beta_schedule: str | None = None  # None: as learning_rate_schedule (ML-Agents' rule)
-    epsilon_schedule: str | None = None
-    lambd: float = 0.95  # GAE lambda
-    num_epoch: int = 3
-    # SAC
-    buffer_init_steps: int = 0
-    tau: float = 0.005
-    steps_per_update: float = 1.0
-    init_entcoef: float = 1.0
-    # our extensions, not ML-Agents keys:
-    max_policy_lag: int = 2  # PPO: rows acted by weights > this many versions old are dropped
-    vtrace_rho_clip: float = 1.0  # IMPALA V-trace rho-bar
-    vtrace_c_clip: float = 1.0  # IMPALA V-trace c-bar
-
-
-@dataclass(frozen=True)
-class TrainerSettings:
-    """The settings of one behavior, resolved (nothing left to merge)."""
-
-    trainer_type: str = "ppo"  # "ppo" | "sac" | "impala"
-    hyperparameters: Hyperparameters = field(default_factory=Hyperparameters)
-    network_settings: NetworkSettings = field(default_factory=NetworkSettings)
-    gamma: float = 0.99  # reward_signals.extrinsic.gamma
-    reward_strength: float = 1.0  # reward_signals.extrinsic.strength
-    max_steps: int = 500_000
-    time_horizon: int = 64
-    summary_freq: int = 50_000
-    checkpoint_interval: int = 500_000
-    keep_checkpoints: int = 5
-
-
-@dataclass(frozen=True)
-class RunConfig:
-    """A whole config file: per-behavior settings plus the run-level sections we use."""
-
-    behaviors: Mapping[str, TrainerSettings]
-    default: TrainerSettings  # default_settings over the built-in defaults
-    engine: Mapping[str, float | int | bool]  # only the engine_settings keys given
-    environment_parameters: Mapping[str, float]
-    unsupported: tuple[str, ...]  # dotted paths of known keys we do not implement
-    source: str = "<config>"
-    torch_device: str | None = None  # torch_settings.device (None: --device, else auto)
-
-    def for_behavior(self, behavior: str) -> TrainerSettings:
-        """Settings for ``behavior`` (``?team=`` ignored); ``default`` if not listed."""
-        return self.behaviors.get(base_name(behavior), self.default)
-
-
 def defaults(trainer_type: str = "ppo") -> TrainerSettings:
-    """ML-Agents' defaults for ``trainer_type`` (IMPALA, not in ML-Agents: PPO's, one epoch)."""
-    if trainer_type == "ppo":
-        return TrainerSettings()
-    if trainer_type == "sac":
-        hyper = Hyperparameters(
-            batch_size=128, buffer_size=50_000, learning_rate_schedule="constant"
-        )
-        return TrainerSettings(trainer_type="sac", hyperparameters=hyper)
-    if trainer_type == "impala":
-        return TrainerSettings(trainer_type="impala", hyperparameters=Hyperparameters(num_epoch=1))
-    raise ConfigError(f"trainer_type: {_trainer_type_problem(trainer_type)}")
+    """ML-Agents' defaults for ``trainer_type``."""
+    if trainer_type not in TRAINERS:
+        raise ConfigError(f"trainer_type: {_trainer_type_problem(trainer_type)}")
+    return TRAINERS[trainer_type].settings()
 
 
 def _all_hyper_keys() -> set[str]:
-    keys = {k for table in HYPER.values() for k in table}
-    return keys | {k for table in HYPER_UNSUPPORTED.values() for k in table}
+    return {k for t in TRAINERS.values() for k in (*t.hyperparameters, *t.unsupported)}
 
 
 def _trainer_type_problem(value: object) -> str:
     if value == "poca":
-        return "'poca' is not supported; use ppo, sac or impala"
-    return f"expected one of {', '.join(TRAINER_TYPES)}, got {show(value)}"
+        *others, last = TRAINERS
+        return f"'poca' is not supported; use {', '.join(others)} or {last}"
+    return f"expected one of {', '.join(TRAINERS)}, got {show(value)}"
 
 
 def _unknown(path: str, key: object, known: Iterable[str]) -> ConfigError:
@@ -192,7 +125,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
             raise _unknown(path, key, known)
     if "trainer_type" in data:
         value = data["trainer_type"]
-        if value not in TRAINER_TYPES:
+        if value not in TRAINERS:
             raise ConfigError(f"{path}.trainer_type: {_trainer_type_problem(value)}")
         layer.trainer_type = value
     trainer_type = layer.trainer_type or inherited_type
@@ -204,7 +137,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
             unsupported.append(f"{path}.{key}")
 
     hyper_path = f"{path}.hyperparameters"
-    checks, extra = HYPER[trainer_type], HYPER_UNSUPPORTED[trainer_type]
+    checks, extra = TRAINERS[trainer_type].hyperparameters, TRAINERS[trainer_type].unsupported
     for key, value in _mapping(hyper_path, data.get("hyperparameters")).items():
         if key in checks:
             layer.hyper[key] = checks[key](f"{hyper_path}.{key}", value)
@@ -212,7 +145,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
             if not _ignored_value(value, extra[key]):
                 unsupported.append(f"{hyper_path}.{key}")
         elif key in _all_hyper_keys():
-            owners = [t for t in TRAINER_TYPES if key in HYPER[t] or key in HYPER_UNSUPPORTED[t]]
+            owners = [n for n, t in TRAINERS.items() if key in (*t.hyperparameters, *t.unsupported)]
             only = ", ".join(owners)
             raise ConfigError(
                 f"{hyper_path}.{key}: not a {trainer_type} hyperparameter ({only} only)"
@@ -260,7 +193,9 @@ def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSetti
     extrinsic: dict[str, Any] = {}
     top: dict[str, Any] = {}
     for layer in layers:
-        hyper.update((k, v) for k, v in layer.hyper.items() if k in HYPER[trainer_type])
+        hyper.update(
+            (k, v) for k, v in layer.hyper.items() if k in TRAINERS[trainer_type].hyperparameters
+        )
         network.update(layer.network)
         extrinsic.update(layer.extrinsic)
         top.update(layer.top)

@@ -41,7 +41,9 @@ def parse_number(path: str, value: object, what: str) -> float:
     return number
 
 
-def _float(low: float | None = None, high: float | None = None, *, open_low: bool = False) -> Check:
+def float_in(
+    low: float | None = None, high: float | None = None, *, open_low: bool = False
+) -> Check:
     """A float check with an optional range (``open_low``: low itself excluded)."""
     if low is None:
         what = "a number"
@@ -61,7 +63,7 @@ def _float(low: float | None = None, high: float | None = None, *, open_low: boo
     return check
 
 
-def _int(low: int = 1) -> Check:
+def int_from(low: int = 1) -> Check:
     """An integer >= ``low``; ``5.0e5`` is accepted as 500000, ``1.5`` is not."""
     what = {1: "a positive integer", 0: "an integer >= 0"}.get(low, f"an integer >= {low}")
 
@@ -89,42 +91,26 @@ def _choice(*allowed: str) -> Check:
     return check
 
 
-POSITIVE_INT, POSITIVE = _int(1), _float(0, open_low=True)
+POSITIVE_INT, POSITIVE = int_from(1), float_in(0, open_low=True)
 
-# hyperparameters by trainer type; SHARED are valid for all three
+# hyperparameters every trainer type takes (learners.trainers adds each one's own)
 SHARED: dict[str, Check] = {
     "batch_size": POSITIVE_INT,
     "buffer_size": POSITIVE_INT,
     "learning_rate": POSITIVE,
     "learning_rate_schedule": _choice(*SCHEDULES),
 }
-_ON_POLICY: dict[str, Check] = {
-    "beta": _float(0),
+ON_POLICY: dict[str, Check] = {
+    "beta": float_in(0),
     "beta_schedule": _choice(*SCHEDULES),
     "epsilon": POSITIVE,
     "epsilon_schedule": _choice(*SCHEDULES),
-    "lambd": _float(0, 1),
+    "lambd": float_in(0, 1),
     "num_epoch": POSITIVE_INT,
-}
-HYPER: dict[str, dict[str, Check]] = {
-    "ppo": {**SHARED, **_ON_POLICY, "max_policy_lag": _int(0)},
-    "impala": {**SHARED, **_ON_POLICY, "vtrace_rho_clip": POSITIVE, "vtrace_c_clip": POSITIVE},
-    "sac": {
-        **SHARED,
-        "buffer_init_steps": _int(0),
-        "tau": _float(0, 1, open_low=True),
-        "steps_per_update": POSITIVE,
-        "init_entcoef": POSITIVE,
-    },
 }
 # ML-Agents keys we do not implement, each with the value that asks for what we do anyway
 # (not reported; ALWAYS: reported whatever the value)
 ALWAYS = object()
-HYPER_UNSUPPORTED: dict[str, dict[str, object]] = {
-    "ppo": {"shared_critic": False},
-    "impala": {"shared_critic": False},
-    "sac": {"save_replay_buffer": False, "reward_signal_steps_per_update": ALWAYS},
-}
 NETWORK: dict[str, Check] = {
     "hidden_units": POSITIVE_INT,
     "num_layers": POSITIVE_INT,
@@ -151,15 +137,15 @@ TOP_UNSUPPORTED: dict[str, object] = {
     "even_checkpoints": False,
 }
 SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")
-EXTRINSIC: dict[str, Check] = {"gamma": _float(0, 1, open_low=True), "strength": _float(0)}
+EXTRINSIC: dict[str, Check] = {"gamma": float_in(0, 1, open_low=True), "strength": float_in(0)}
 REWARD_UNSUPPORTED = ("curiosity", "gail", "rnd")
 ENGINE: dict[str, Check] = {
     "time_scale": POSITIVE,
     "width": POSITIVE_INT,
     "height": POSITIVE_INT,
-    "quality_level": _int(0),
-    "target_frame_rate": _int(-1),
-    "capture_frame_rate": _int(0),
+    "quality_level": int_from(0),
+    "target_frame_rate": int_from(-1),
+    "capture_frame_rate": int_from(0),
     "no_graphics": _bool,
 }
 ENGINE_UNSUPPORTED = ("no_graphics_monitor",)

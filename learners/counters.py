@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from batches.segment import Segment
-    from learners.config import RunConfig
+    from learners.settings import RunConfig
 
 
 def all_done(steps: Mapping[str, int], config: RunConfig, max_steps: int | None) -> bool:

@@ -35,7 +35,7 @@ from learners.policies import ActorCritic
 from learners.schedules import decay
 
 if TYPE_CHECKING:
-    from learners.config import TrainerSettings
+    from learners.settings import TrainerSettings
 
 
 class IMPALA:

@@ -1,6 +1,6 @@
 """The central learner: one network and one algorithm per behavior, weights by version.
 
-Implements the contract of ``rollout/learner_api.py`` (``submit`` segments, ``weights``)
+Implements the contract of ``batches/contracts.py`` (``submit`` segments, ``weights``)
 as a plain class, so every algorithm runs and is tested without Ray; ``learner_actor``
 is the Ray shell the CLI starts. Behaviors are discovered from the segments themselves
 (each carries its ``BehaviorSpec`` as a dict), and built with the same
@@ -13,7 +13,6 @@ behaviors learning side by side do not make each other's data look stale.
 
 from __future__ import annotations
 
-import importlib
 import time
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
@@ -25,15 +24,16 @@ from batches import keys
 from batches.segment import Segment
 from batches.specs import spec_from_dict
 from learners import checkpoint
-from learners.acting import base_name, policy_factory
 from learners.counters import LearnerStats, Sources, all_done
 from learners.devices import Compute, to_cpu
+from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
+from learners.trainers import trainer
 
 if TYPE_CHECKING:  # tensordict only where segments arrive: the driver never loads it
     from tensordict import TensorDict
 
-    from learners.config import RunConfig, TrainerSettings
+    from learners.settings import RunConfig, TrainerSettings
 
 
 class Algorithm(Protocol):
@@ -49,27 +49,11 @@ class Algorithm(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
-ALGORITHM_MODULES = {"ppo": "learners.ppo", "sac": "learners.sac", "impala": "learners.impala"}
-
-
 def make_algorithm(
     network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
 ) -> Algorithm:
     """The behavior's algorithm, on ``compute``'s device (the network must be there)."""
-    compute = compute or Compute()
-    if settings.trainer_type == "ppo":
-        from learners.ppo import PPO
-
-        return PPO(network, settings, compute)
-    if settings.trainer_type == "sac":
-        from learners.sac import SAC
-
-        return SAC(network, settings, compute)
-    if settings.trainer_type == "impala":
-        from learners.impala import IMPALA
-
-        return IMPALA(network, settings, compute)
-    raise ValueError(f"trainer_type {settings.trainer_type!r}: use ppo, sac or impala")
+    return trainer(settings).algorithm_class()(network, settings, compute or Compute())
 
 
 def policy_lag(updates: list[int], acted: torch.Tensor) -> torch.Tensor:
@@ -115,13 +99,13 @@ class CentralLearner:
         """Load the algorithms' modules (torchrl, tensordict: seconds of CPU) before the
         first data arrives, not while the first update waits on them."""
         for settings in (*self.config.behaviors.values(), self.config.default):
-            importlib.import_module(ALGORITHM_MODULES[settings.trainer_type])
+            trainer(settings).algorithm_class()
 
     # --- the learner contract -----------------------------------------------------------
 
     def submit(self, segments: list[Segment | TensorDict]) -> tuple[int, int | None]:
         """Take segments (as workers send them, or already TensorDicts), update behaviors
-        whose data is ready; the newest version and the demand (``rollout/learner_api.py``)."""
+        whose data is ready; the newest version and the demand (``batches/contracts.py``)."""
         started = time.perf_counter()
         for segment in segments:
             if isinstance(segment, Segment):
@@ -227,4 +211,4 @@ class CentralLearner:
             behavior.updates = [int(v) for v in entry["updates"]]
 
 
-__all__ = ["Algorithm", "CentralLearner", "base_name", "policy_factory"]
+__all__ = ["Algorithm", "CentralLearner"]

@@ -38,7 +38,6 @@ from learners.acting import (
     LOG_STD_MAX,
     LOG_STD_MIN,
     NORM_CLIP,
-    NetworkSettings,
     encoder_width,
     goal_sensors,
     initial_weights,
@@ -46,6 +45,7 @@ from learners.acting import (
     trunk_input_width,
 )
 from learners.encoders import visual_encoder
+from learners.settings import NetworkSettings
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)

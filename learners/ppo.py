@@ -50,7 +50,7 @@ from learners.policies import ActorCritic
 from learners.schedules import BETA_END, EPSILON_END, decay
 
 if TYPE_CHECKING:
-    from learners.config import TrainerSettings
+    from learners.settings import TrainerSettings
 
 
 @dataclass(frozen=True)

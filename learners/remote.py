@@ -1,5 +1,5 @@
 """The central learner as a Ray actor, defined without torch: the driver that starts it
-(``rollout.train``) never loads torch (1.3 s of CPU while Ray starts); the actor's own
+(``driver.train``) never loads torch (1.3 s of CPU while Ray starts); the actor's own
 process does, on a thread, while it already takes segments.
 
 Why the thread: the learner's process needs seconds of CPU for torch, tensordict and
@@ -23,12 +23,13 @@ from typing import TYPE_CHECKING, Any
 from batches import keys
 from batches.segment import Segment
 from learners.counters import LearnerStats, Sources, all_done, on_policy_wanted
+from learners.trainers import trainer
 
 if TYPE_CHECKING:
     from tensordict import TensorDict
 
-    from learners.config import RunConfig
     from learners.learner import CentralLearner
+    from learners.settings import RunConfig
 
 
 BUILD_NICENESS = 10  # added to the building thread's: its imports wait for idle CPU
@@ -36,7 +37,7 @@ BUILD_NICENESS = 10  # added to the building thread's: its imports wait for idle
 
 class LearnerHost:
     """Holds a ``learners.learner.CentralLearner`` (the contract of
-    ``rollout/learner_api.py``) in the actor's process; builds it on a thread."""
+    ``batches/contracts.py``) in the actor's process; builds it on a thread."""
 
     def __init__(
         self,
@@ -130,7 +131,7 @@ class LearnerHost:
         wants = [
             on_policy_wanted(settings.hyperparameters.buffer_size, steps)
             for behavior, steps in self._early_steps.items()
-            if (settings := self.config.for_behavior(behavior)).trainer_type == "ppo"
+            if trainer(settings := self.config.for_behavior(behavior)).waits_for_fresh_data
         ]
         return min(wants) if wants else None
 

@@ -45,7 +45,7 @@ from learners.policies import ActorCritic, SensorEncoder
 from learners.schedules import decay
 
 if TYPE_CHECKING:
-    from learners.config import TrainerSettings
+    from learners.settings import TrainerSettings
 
 ACTION = "action"  # replay buffer: continuous float [c], or the discrete index (int64 [])
 MAX_GRADIENT_STEPS = 200  # per update() call, so one call stays short; the rest is dropped

@@ -1,9 +1,9 @@
-"""rollout: the actor side of unity-rollout (ports, Unity processes, workers, service, CLI).
+"""rollout: the actor side of unity-rollout (ports, Unity processes, workers) and the service.
 
-Importing the package activates :mod:`rollout.compat` first, so every module below may
+Importing the package activates :mod:`mlagents_compat` first, so every module below may
 import mlagents_envs directly; nothing is activated merely by installing the package.
 """
 
-from rollout import compat as _compat
+import mlagents_compat as _compat
 
 _compat.install()

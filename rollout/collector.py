@@ -18,13 +18,13 @@ import dataclasses
 import logging
 import time
 import uuid
-from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
+from batches.contracts import Actor, ActorFactory, Weights
 from batches.segment import Segment
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
@@ -39,26 +39,6 @@ from rollout.unity import (
 
 log = logging.getLogger(__name__)
 NO_AGENT_STEPS = 3000  # environment steps without any agent before a run gives up on a build
-
-
-class Actor(Protocol):
-    """What a worker needs of a policy (``learners.acting.NumpyActor`` is one): numpy
-    observations per sensor and an allowed-mask in; continuous [n, c], discrete
-    [n, branches] and log-probabilities [n, c + branches] (one per action component) out;
-    and the continuous action Unity gets for a chosen one (the policy's convention:
-    ML-Agents' scale the Gaussian's sample)."""
-
-    def act(
-        self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
-
-    def to_unity(self, continuous: np.ndarray) -> np.ndarray: ...
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> Any: ...
-
-
-ActorFactory = Callable[[str, BehaviorSpec], Actor]  # (behavior name, spec) -> policy
-Weights = dict[str, dict[str, Any]]  # behavior -> state_dict (the factory's actors load it)
 
 
 @dataclass

@@ -32,7 +32,7 @@ from typing import Any
 import ray
 from ray.exceptions import ObjectLostError, RayActorError, RayError
 
-from rollout.collector import ActorFactory
+from batches.contracts import ActorFactory
 from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, steps_of
 from rollout.membership import Membership
 from rollout.service_config import LearnerDied, RolloutError, ServiceConfig, last_line

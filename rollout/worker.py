@@ -14,7 +14,8 @@ import sys
 
 import ray
 
-from rollout.collector import ActorFactory, Collector, CollectorMetrics, Weights
+from batches.contracts import ActorFactory, Weights
+from rollout.collector import Collector, CollectorMetrics
 from rollout.ledger import Collected
 from rollout.ports import PortAllocator, PortRange
 from rollout.unity import UnityConfig

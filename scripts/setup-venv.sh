@@ -4,7 +4,7 @@
 # mlagents-envs 1.1.0 declares Python<=3.10.12, protobuf<3.21, grpcio<=1.48.2 and
 # numpy<1.24. We install it with --no-deps --ignore-requires-python from the same pin
 # file, next to current versions of what it really needs (listed in pyproject.toml);
-# rollout.compat then makes its generated protobuf code import (see README).
+# mlagents_compat then makes its generated protobuf code import (see README).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -30,6 +30,6 @@ target="."
 "${pip[@]}" install -c constraints.txt -e "$target" 2> >(grep -v "is ignored: it is neither a file" >&2)
 "${pip[@]}" install -c constraints.txt --no-deps --ignore-requires-python mlagents-envs \
     2> >(grep -v "is ignored: it is neither a file" >&2)
-"$VENV/bin/python" -c "import rollout.compat as c; c.install(); import mlagents_envs.environment"
+"$VENV/bin/python" -c "import mlagents_compat as c; c.install(); import mlagents_envs.environment"
 echo "$want" > "$VENV/.installed"
 echo "setup-venv: ready" >&2

@@ -80,7 +80,7 @@ def ray_session():
     """One local Ray for the whole session (it takes ~6 s to start), 2 CPUs as in CI."""
     import ray
 
-    from rollout.local_ray import init_local_ray
+    from driver.local_ray import init_local_ray
 
     init_local_ray(2)
     yield ray

@@ -151,7 +151,7 @@ def start_train_cli(marker: str, *args: str) -> subprocess.Popen:
     """``unity-rollout train --no-progress ARGS`` in a session of its own, every process of
     it marked for ``run_marked``; its output as text on ``stdout``."""
     return subprocess.Popen(
-        [sys.executable, "-m", "rollout.cli", "train", "--no-progress", *args],
+        [sys.executable, "-m", "driver.cli", "train", "--no-progress", *args],
         env={**os.environ, "UNITY_ROLLOUT_TEST_RUN": marker},
         start_new_session=True,
         stdout=subprocess.PIPE,

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from rollout.chaos import ChaosDriver
+from testkit.chaos import ChaosDriver
 from tests.helpers import assert_run_gone, kill_run, start_train_cli
 
 pytestmark = pytest.mark.integration

@@ -13,11 +13,19 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("batches", "rollout", "learners", "unitysim")
+PACKAGES = (
+    "batches",
+    "driver",
+    "gymnasium_adapters",
+    "learners",
+    "mlagents_compat",
+    "rollout",
+    "unitysim",
+)
 
 SCRIPT = """
 import importlib, json, pkgutil, sys
-import rollout.compat, mlagents_envs.environment  # the README's check
+import mlagents_compat, mlagents_envs.environment  # the README's check
 names = []
 for package in {packages!r}:
     module = importlib.import_module(package)
@@ -41,7 +49,7 @@ def test_no_module_imports_mlagents_envs_registry_or_envs():
     )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads(result.stdout.strip().splitlines()[-1])
-    assert "rollout.compat" in report["imported"]
+    assert "mlagents_compat" in report["imported"]
     assert "mlagents_envs.environment" in report["modules"]
     forbidden = [
         name
@@ -53,7 +61,7 @@ def test_no_module_imports_mlagents_envs_registry_or_envs():
 
 
 def test_unitysim_does_not_import_rollout_or_learners():
-    """Only the tiny compat loader (``rollout.compat``) is allowed."""
+    """Only the tiny compat loader (``mlagents_compat``) is allowed."""
     forbidden = re.compile(
         r"^\s*(from|import)\s+(learners|rollout)\b(?!\.compat\b| import compat\b)"
     )
@@ -68,7 +76,7 @@ def test_unitysim_does_not_import_rollout_or_learners():
 
 def test_cli_help_lists_commands():
     result = subprocess.run(
-        [sys.executable, "-m", "rollout.cli", "--help"], cwd=ROOT, capture_output=True, text=True
+        [sys.executable, "-m", "driver.cli", "--help"], cwd=ROOT, capture_output=True, text=True
     )
     assert result.returncode == 0
     assert "doctor" in result.stdout
@@ -80,19 +88,19 @@ WORKER = (  # its actor class's module, the policy factory it unpickles, one vec
     "import rollout.worker\n"
     "from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec\n"
     "from mlagents_envs.base_env import DimensionProperty, ObservationType\n"
-    "from learners.acting import actor_factory\n"
+    "from learners.factory import actor_factory\n"
     "factory = pickle.loads(pickle.dumps(actor_factory))\n"
     "obs = ObservationSpec((8,), (DimensionProperty.NONE,), ObservationType.DEFAULT, 'v')\n"
     "actor = factory('3DBall?team=0', BehaviorSpec([obs], ActionSpec(2, (3,))))\n"
     "actor.act({'v': np.zeros((4, 8), np.float32)})\n"
 )
-DRIVER = "import rollout.cli, rollout.train\n"  # `unity-rollout train`, before the learner
+DRIVER = "import driver.cli, driver.train\n"  # `unity-rollout train`, before the learner
 
 
 @pytest.mark.parametrize(
     ("process", "script", "expected", "absent"),
     [
-        ("worker", WORKER, ("rollout.collector", "learners.acting"), ("torch",)),
+        ("worker", WORKER, ("rollout.collector", "learners.factory"), ("torch",)),
         ("driver", DRIVER, ("rollout.service", "learners.remote"), ("torch",)),
     ],
 )

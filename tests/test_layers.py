@@ -1,6 +1,7 @@
-"""Layers go one way: ``batches`` (the vocabulary) imports none of the others, ``learners``
-never imports ``rollout`` (and so never needs Ray to be tested), ``unitysim`` imports
-nothing of ours but the compat loader."""
+"""Layers go one way. Every product package is listed with the packages it may import;
+the list itself must be a hierarchy (no import runs back up), every import of every file
+(lazy and type-only ones too) must follow it, no module may import itself back through
+others, and the driver is the one package that wires the actor side to the learners."""
 
 from __future__ import annotations
 
@@ -10,12 +11,18 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-OURS = {"batches", "learners", "rollout", "unitysim"}
-ALLOWED = {  # package -> our packages it may import (module paths allowed one by one)
-    "batches": {"batches"},
-    "learners": {"batches", "learners"},
-    "unitysim": {"unitysim", "rollout.compat"},
+# package -> what else of ours it may import (a package, or one module of it)
+ALLOWED: dict[str, set[str]] = {
+    "mlagents_compat": set(),  # the leaf that makes mlagents-envs import
+    "batches": set(),  # the vocabulary and contracts both sides speak
+    "unitysim": {"mlagents_compat"},  # plays Unity: knows nothing of the trainer
+    "learners": {"batches"},
+    "rollout": {"batches", "mlagents_compat", "unitysim.launcher"},
+    "gymnasium_adapters": {"batches", "rollout"},
+    "driver": {"batches", "learners", "mlagents_compat", "rollout", "unitysim"},
+    "testkit": {"batches", "driver", "learners", "mlagents_compat", "rollout", "unitysim"},
 }
+NOT_PACKAGES = {"tests", "benchmarks", "scripts", "deploy", "docs", "config"}
 
 
 def imports_of(path: Path) -> set[str]:
@@ -30,17 +37,90 @@ def imports_of(path: Path) -> set[str]:
     return found
 
 
-def crossing(package: str) -> list[str]:
-    allowed = ALLOWED[package]
+def crossing(package: str, root: Path = ROOT) -> list[str]:
+    allowed = ALLOWED[package] | {package}
     wrong = []
-    for path in sorted((ROOT / package).rglob("*.py")):
+    for path in sorted((root / package).rglob("*.py")):
         for module in imports_of(path):
-            if module.split(".")[0] not in OURS:
+            if module.split(".")[0] not in ALLOWED:
                 continue
             if any(module == a or module.startswith(a + ".") for a in allowed):
                 continue
-            wrong.append(f"{path.relative_to(ROOT)} imports {module}")
+            wrong.append(f"{path.relative_to(root)} imports {module}")
     return wrong
+
+
+def module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def module_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Our modules and the modules of ours each imports (a package's ``__init__`` when
+    the name is not a module of its own)."""
+    paths = {
+        module_name(p, root): p
+        for package in ALLOWED
+        if (root / package).is_dir()
+        for p in (root / package).rglob("*.py")
+    }
+    graph: dict[str, set[str]] = {}
+    for name, path in paths.items():
+        targets = set()
+        for imported in imports_of(path):
+            while imported and imported not in paths:
+                imported = imported.rpartition(".")[0]
+            if imported and imported != name:
+                targets.add(imported)
+        graph[name] = targets
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one node (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(node: str) -> None:
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        for target in graph.get(node, ()):
+            if target not in index:
+                visit(target)
+                low[node] = min(low[node], low[target])
+            elif target in stack:
+                low[node] = min(low[node], index[target])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_every_package_is_in_the_table():
+    packages = {
+        p.name
+        for p in ROOT.iterdir()
+        if (p / "__init__.py").is_file() and p.name not in NOT_PACKAGES
+    }
+    assert packages == set(ALLOWED)
+
+
+def test_the_table_is_a_hierarchy():
+    """No package may import one that may import it back, however indirectly."""
+    graph = {p: {a.split(".")[0] for a in allowed} for p, allowed in ALLOWED.items()}
+    assert circles(graph) == []
 
 
 @pytest.mark.parametrize("package", sorted(ALLOWED))
@@ -48,9 +128,36 @@ def test_imports_go_one_way(package):
     assert crossing(package) == []
 
 
-def test_the_check_sees_a_crossing(tmp_path, monkeypatch):
+def test_no_import_circles():
+    assert circles(module_graph()) == []
+
+
+def test_the_driver_alone_wires_rollout_to_learners():
+    for package in ALLOWED:
+        if package in {"driver", "testkit"}:
+            continue
+        assert not {"rollout", "learners"} <= {a.split(".")[0] for a in ALLOWED[package]}
+
+
+def test_the_product_never_imports_testkit():
+    assert [p for p, allowed in ALLOWED.items() if "testkit" in allowed] == []
+
+
+def test_the_check_sees_a_crossing(tmp_path):
     bad = tmp_path / "learners"
     bad.mkdir()
     (bad / "x.py").write_text("from rollout.service import RolloutService\nimport batches.keys\n")
-    monkeypatch.setattr(f"{__name__}.ROOT", tmp_path)
-    assert crossing("learners") == ["learners/x.py imports rollout.service.RolloutService"]
+    assert crossing("learners", tmp_path) == [
+        "learners/x.py imports rollout.service.RolloutService"
+    ]
+
+
+def test_the_check_sees_a_circle_through_a_lazy_import(tmp_path):
+    package = tmp_path / "learners"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("from learners.b import thing\n")
+    (package / "b.py").write_text("def f():\n    from learners import c\n")
+    (package / "c.py").write_text("import learners.a\n")
+    (package / "d.py").write_text("from learners.a import thing\n")
+    assert circles(module_graph(tmp_path)) == [["learners.a", "learners.b", "learners.c"]]

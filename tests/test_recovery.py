@@ -20,9 +20,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from driver.train import TrainOptions, prepare_run_dir
 from learners import checkpoint
 from learners.config import CONFIG_DIR
-from rollout.train import TrainOptions, prepare_run_dir
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
 
 BEHAVIOR = "3DBall?team=0"
@@ -57,7 +57,7 @@ def start_train(results: Path, marker: str, *extra: str) -> subprocess.Popen:
 @pytest.mark.integration
 def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path):
     """Resumed as a retried job entrypoint would: ``--resume-if-exists`` (``--resume`` takes
-    the same path, and tests/test_train.py resumes a cleanly stopped run with it)."""
+    the same path, and tests/driver/test_train.py resumes a cleanly stopped run with it)."""
     # summaries every 2,000 steps: the resumed stretch prints several even when the workers'
     # episode counts reach the driver late (a summary with no finished episode prints nothing)
     write_config(tmp_path, summary_freq=2000)

@@ -1,7 +1,7 @@
 """Protobuf on the Unity side: environment batches to ``UnityMessageProto`` and back.
 
 The only module of unitysim that knows the generated message classes (they import
-because ``unitysim/__init__.py`` activates ``rollout.compat``). Field meanings are
+because ``unitysim/__init__.py`` activates ``mlagents_compat``). Field meanings are
 in the protocol note: ``docs`` of the project and ``unity-protocol.md`` §3.
 
 The per-step output built here (:func:`rl_output`) is the reference encoder; the player

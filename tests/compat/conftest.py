@@ -4,6 +4,6 @@ They also run under other interpreters (tests/compat/test_interpreters.py), so n
 here may import torch, ray or our heavier packages.
 """
 
-from rollout import compat
+import mlagents_compat as compat
 
 compat.install()

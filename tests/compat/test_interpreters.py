@@ -105,7 +105,7 @@ def test_compat_is_a_no_op_under_the_original_pins():
         [
             str(venv / "bin" / "python"),
             "-c",
-            "import rollout.compat as c; print(c.install()); import mlagents_envs.environment",
+            "import mlagents_compat as c; print(c.install()); import mlagents_envs.environment",
         ],
         cwd=ROOT,
         env={**os.environ, "PYTHONPATH": str(ROOT)},

@@ -9,7 +9,7 @@ from google.protobuf.descriptor import Descriptor, FieldDescriptor
 from google.protobuf.internal import api_implementation
 from google.protobuf.message import Message
 
-from rollout import compat
+import mlagents_compat as compat
 
 
 def _pb2_modules():

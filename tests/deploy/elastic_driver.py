@@ -19,9 +19,9 @@ import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from ray.util.state import list_actors
 
-from learners.acting import actor_factory
+from driver.counting_learner import CountingLearner
+from learners.factory import actor_factory
 from rollout.service import RolloutService, ServiceConfig
-from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
 
 PHASE_S = 120.0  # a safety stop for each phase

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from rollout.cli import build_parser
+from driver.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKERFILE = ROOT / "Dockerfile"
@@ -113,7 +113,7 @@ def test_package_sources_are_copied_and_not_ignored():
 
 def test_entrypoint_is_the_cli_and_default_command_trains_on_unitysim():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert project["scripts"] == {"unity-rollout": "rollout.cli:main"}
+    assert project["scripts"] == {"unity-rollout": "driver.cli:main"}
     entrypoint = exec_form(args_of("ENTRYPOINT")[-1])
     assert entrypoint[:2] == ["tini", "--"]  # PID 1 reaps the Unity players
     script = entrypoint[2].removeprefix("/opt/unity-rollout/")

@@ -16,7 +16,7 @@ import pytest
 import ray
 import yaml
 
-from rollout.cli import build_parser
+from driver.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -271,7 +271,7 @@ def ray_nodes(spec: dict) -> dict[str, dict[str, float]]:
 def test_the_learner_actor_fits_the_gpu_group_and_rollout_workers_do_not(name, spec, monkeypatch):
     """The learner's real Ray options under --device cuda (learners.remote) against what
     each group's node offers: only the GPU group can take the learner, and only the Unity
-    groups can take a rollout worker (one CPU, no GPU: rollout.train on a cluster)."""
+    groups can take a rollout worker (one CPU, no GPU: driver.train on a cluster)."""
     from learners.remote import learner_actor
 
     recorded = _RecordedActor()

@@ -14,10 +14,10 @@ import sys
 import ray
 from ray.util.state import list_actors
 
-from learners.acting import actor_factory
+from driver.counting_learner import CountingLearner
+from learners.factory import actor_factory
 from rollout.ports import PortAllocator
 from rollout.service import RolloutService, ServiceConfig
-from rollout.testing import CountingLearner
 from rollout.unity import UnityConfig
 
 

@@ -13,13 +13,13 @@ import torch
 
 from batches import keys
 from batches.segment import Segment
-from learners.acting import NetworkSettings
 from learners.config import defaults, parse_config
 from learners.impala import IMPALA
 from learners.learner import CentralLearner, Sources, policy_lag
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
 from learners.ppo import PPO, Steps
+from learners.settings import NetworkSettings
 from tests.learners.fakes import segment, vector_spec
 
 

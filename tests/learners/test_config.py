@@ -9,16 +9,15 @@ from pathlib import Path
 import pytest
 import yaml
 
-from learners.acting import NetworkSettings
 from learners.config import (
     CONFIG_DIR,
     ConfigError,
-    RunConfig,
     config_for_env,
     defaults,
     load_config,
     parse_config,
 )
+from learners.settings import NetworkSettings, RunConfig
 
 # ML-Agents' config/ppo/3DBall.yaml, as shipped with ML-Agents
 MLAGENTS_PPO_3DBALL = """\

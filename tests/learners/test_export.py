@@ -13,13 +13,14 @@ import pytest
 import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
+from driver import cli
 from learners import checkpoint
-from learners.acting import ACTION_CLIP, NetworkSettings
+from learners.acting import ACTION_CLIP
 from learners.checkpoint import network_settings_dict, spec_to_dict
 from learners.config_keys import VIS_ENCODE_TYPES
 from learners.export import export_checkpoint, export_onnx
 from learners.policies import ActorCritic
-from rollout import cli
+from learners.settings import NetworkSettings
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 
 SPECS = {

@@ -8,14 +8,10 @@ import pytest
 import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
-from learners.acting import (
-    NetworkSettings,
-    NumpyActor,
-    PolicyFactory,
-    acts_in_numpy,
-    encoder_width,
-)
+from learners.acting import NumpyActor, acts_in_numpy, encoder_width
+from learners.factory import PolicyFactory
 from learners.policies import ActorCritic, RunningNorm, SensorEncoder, TorchActor, numpy_state
+from learners.settings import NetworkSettings
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 
 

@@ -14,10 +14,12 @@ import pytest
 import torch
 
 from batches import keys
-from learners.acting import NetworkSettings, NumpyActor, policy_factory
+from learners.acting import NumpyActor
 from learners.config import defaults, load_config
+from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
 from learners.sac import MAX_GRADIENT_STEPS, SAC, masked_logits, next_mask
+from learners.settings import NetworkSettings
 from rollout.ports import PortRange
 from tests.helpers import train_in_process
 from tests.learners.fakes import segment, vector_spec

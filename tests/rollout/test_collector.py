@@ -14,7 +14,7 @@ from tensordict import TensorDict
 
 from batches import keys
 from batches.specs import spec_from_dict, step_spec
-from learners.acting import actor_factory
+from learners.factory import actor_factory
 from rollout.collector import NO_AGENT_STEPS, Collector
 from rollout.restarts import RestartPolicy
 from rollout.unity import UnityConfig, UnityError, UnityStartError

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from learners.acting import actor_factory
+from learners.factory import actor_factory
 from rollout.service import RolloutService, ServiceConfig
 from rollout.unity import UnityConfig
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from learners.acting import actor_factory
+from learners.factory import actor_factory
 from rollout.collector import Collector
 from rollout.ports import PortAllocator, PortRange
 from rollout.restarts import RestartBudget, RestartPolicy, RestartRefused

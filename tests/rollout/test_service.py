@@ -14,7 +14,8 @@ from ray.exceptions import ActorUnavailableError, RayTaskError
 
 from batches import keys
 from batches.specs import step_spec
-from learners.acting import actor_factory
+from driver.counting_learner import CountingLearner
+from learners.factory import actor_factory
 from rollout.ports import PortAllocator, PortRange
 from rollout.restarts import RestartPolicy
 from rollout.service import (
@@ -24,9 +25,9 @@ from rollout.service import (
     RolloutService,
     ServiceConfig,
 )
-from rollout.testing import CountingLearner, SyntheticWorker
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker, WeightsLost
+from testkit.synthetic import SyntheticWorker
 from tests.helpers import trajectories, wait_gone
 
 pytestmark = pytest.mark.integration

@@ -208,7 +208,7 @@ def test_each_failure_restarts_on_a_fresh_port_until_the_budget_is_spent(
     allocator, flags, timeout_wait
 ):
     """The fault repeats in every restarted player, so the budget runs out."""
-    from learners.acting import actor_factory
+    from learners.factory import actor_factory
     from rollout.collector import Collector
 
     config = UnityConfig(

@@ -1,5 +1,5 @@
 """Tests of unitysim; activating the compat layer before any test imports mlagents_envs."""
 
-from rollout import compat
+import mlagents_compat as compat
 
 compat.install()

@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 TRAINER = """
 import sys, time
-import rollout.compat
+import mlagents_compat
 from mlagents_envs.environment import UnityEnvironment
 env = UnityEnvironment(file_name=sys.argv[1], base_port=int(sys.argv[2]), no_graphics=True)
 env.reset()

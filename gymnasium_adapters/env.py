@@ -25,7 +25,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from mlagents_envs.base_env import ActionTuple
 
-from rollout.gymnasium_slots import (
+from gymnasium_adapters.slots import (
     DEFAULT_MAX_EXCHANGES,
     AgentSetError,
     BehaviorSlots,

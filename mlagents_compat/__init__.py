@@ -13,7 +13,7 @@ removed. Rather than patching site-packages, :func:`install` adds two import-tim
 * a minimal ``distutils.version.StrictVersion`` when no ``distutils`` exists.
 
 Importing this module activates both (it calls :func:`install`), so
-``import rollout.compat, mlagents_envs.environment`` just works; nothing is activated by a
+``import mlagents_compat, mlagents_envs.environment`` just works; nothing is activated by a
 ``.pth`` file or by merely installing the package. Where the original code already imports
 (old protobuf), :func:`install` changes nothing. This module is a leaf: it imports
 nothing of ours, so ``unitysim`` may use it too.

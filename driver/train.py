@@ -28,12 +28,16 @@ import ray
 import yaml
 from ray.exceptions import RayActorError
 
-from learners.acting import policy_factory
-from learners.config import ConfigError, RunConfig, config_for_env, load_config, parse_config
+from driver.learner_keeper import LearnerKeeper
+from driver.local_ray import BackgroundRay, init_local_ray
+from driver.startup import first_steps, startup_times
+from driver.summaries import Summaries, next_multiple
+from learners.config import ConfigError, config_for_env, load_config, parse_config
 from learners.devices import DeviceError, learner_device
+from learners.factory import policy_factory
 from learners.remote import learner_actor
-from rollout.learner_keeper import LearnerKeeper
-from rollout.local_ray import BackgroundRay, init_local_ray
+from learners.settings import RunConfig
+from learners.trainers import trainer
 from rollout.membership import request_workers, workers_wanted
 from rollout.restarts import RestartPolicy
 from rollout.service import (
@@ -43,8 +47,6 @@ from rollout.service import (
     ServiceConfig,
     last_line,
 )
-from rollout.startup import first_steps, startup_times
-from rollout.summaries import Summaries, next_multiple
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
 
 log = logging.getLogger(__name__)
@@ -187,7 +189,7 @@ def build_system(
     else:
         workers = int(options.workers)
     horizons = [s.time_horizon for s in config.behaviors.values()] or [config.default.time_horizon]
-    asynchronous = any(s.trainer_type == "impala" for s in config.behaviors.values())
+    asynchronous = any(trainer(s).asynchronous for s in config.behaviors.values())
     service_config = ServiceConfig(
         unity,
         num_workers=workers,

@@ -1,6 +1,6 @@
 """The Gymnasium side of one Unity behavior: its spaces, actions into ML-Agents'
 ``ActionTuple``, and :class:`BehaviorSlots`, which keeps each agent in a fixed slot across
-ML-Agents' own resets (what ``rollout.gymnasium_env``'s environments step)."""
+ML-Agents' own resets (what ``gymnasium_adapters.env``'s environments step)."""
 
 from __future__ import annotations
 

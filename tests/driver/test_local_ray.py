@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from rollout.local_ray import RAY_MIN_OBJECT_STORE, _shm_free, object_store_bytes
+from driver.local_ray import RAY_MIN_OBJECT_STORE, _shm_free, object_store_bytes
 
 GIB = 1024**3
 
@@ -31,7 +31,7 @@ def test_reads_this_machines_shm():
 def test_local_mode_gives_rays_gcs_time_on_a_busy_machine(monkeypatch):
     import ray
 
-    from rollout import local_ray
+    from driver import local_ray
 
     started = {}
     monkeypatch.delenv(local_ray.GCS_WAIT, raising=False)
@@ -45,7 +45,7 @@ def test_local_mode_gives_rays_gcs_time_on_a_busy_machine(monkeypatch):
 
 
 def test_local_ray_runs_actors_without_the_helpers_it_does_not_use(ray_session):
-    from rollout.local_ray import LEAN_PROCESSES
+    from driver.local_ray import LEAN_PROCESSES
 
     node = ray_session._private.worker._global_node
     started = set(node.all_processes)
@@ -65,7 +65,7 @@ def test_the_lean_head_puts_rays_hooks_back_even_when_init_fails():
     import ray._private.node
     import ray._private.services
 
-    from rollout.local_ray import _lean_head
+    from driver.local_ray import _lean_head
 
     node, get_node = ray._private.node.Node, ray._private.services.get_node
     with pytest.raises(RuntimeError), _lean_head():
@@ -78,7 +78,7 @@ def test_a_ray_whose_internals_moved_still_starts_the_plain_way(monkeypatch):
     import ray
     import ray._private.node
 
-    from rollout import local_ray
+    from driver import local_ray
 
     plain = ray._private.node.Node
     calls: list[bool] = []
@@ -98,8 +98,8 @@ def test_asking_for_the_dashboard_starts_rays_full_head(monkeypatch):
     import ray
     import ray._private.node
 
-    from rollout import local_ray
-    from rollout.cli import build_parser
+    from driver import local_ray
+    from driver.cli import build_parser
 
     plain = ray._private.node.Node
     calls: list[tuple[bool, bool]] = []

@@ -22,9 +22,9 @@ import psutil
 import pytest
 import torch
 
+from driver.train import TrainingError, TrainOptions, train
 from learners import checkpoint
 from learners.export import export_checkpoint
-from rollout.train import TrainingError, TrainOptions, train
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
 
 pytestmark = pytest.mark.integration
@@ -191,10 +191,10 @@ def test_workers_auto_fills_the_cluster(ray_session, tmp_path):
 
 
 def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
+    from driver.summaries import Summaries
     from learners.config import parse_config
     from learners.learner import LearnerStats
     from rollout.service_metrics import ServiceMetrics
-    from rollout.summaries import Summaries
 
     config = parse_config({"behaviors": {"A": {"summary_freq": 100}, "B": {"summary_freq": 250}}})
     written: list[tuple[str, int]] = []
@@ -216,9 +216,9 @@ def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
 def test_a_run_whose_first_look_comes_late_still_writes_its_first_summary(tmp_path):
     """A resumed run at step 1,000 seen first at 1,350 (a fast run, a slow first look) is
     past its first boundary (1,100): that summary is written at once, not skipped."""
+    from driver.summaries import Summaries
     from learners.learner import LearnerStats
     from rollout.service_metrics import ServiceMetrics
-    from rollout.summaries import Summaries
 
     written: list[int] = []
     start = {"A?team=0": 1000}
@@ -236,9 +236,9 @@ def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
 
     from rich.console import Console
 
+    from driver.summaries import Summaries
     from learners.learner import LearnerStats
     from rollout.service_metrics import ServiceMetrics
-    from rollout.summaries import Summaries
 
     out = io.StringIO()
     console = Console(file=out, width=200)
@@ -250,8 +250,8 @@ def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
 
 
 def test_engine_settings_reach_the_unity_config(tmp_path):
+    from driver.train import unity_config
     from learners.config import parse_config
-    from rollout.train import unity_config
 
     config = parse_config({"engine_settings": {"time_scale": 5, "no_graphics": False}})
     unity = unity_config(TrainOptions(), config, tmp_path)
@@ -259,8 +259,8 @@ def test_engine_settings_reach_the_unity_config(tmp_path):
 
 
 def test_restart_limits_and_timeout_reach_every_unity_instance(tmp_path):
+    from driver.train import load_run_config, unity_config
     from rollout.restarts import RestartPolicy
-    from rollout.train import load_run_config, unity_config
 
     options = TrainOptions(
         env="unitysim:Basic", restarts=RestartPolicy(rate_limit_n=3), timeout_wait=7
@@ -278,7 +278,7 @@ def test_two_runs_on_one_node_share_the_port_registry(tmp_path):
     registry = tmp_path / "registry"
     marker = uuid.uuid4().hex
     env = {**os.environ, REGISTRY_VARIABLE: str(registry), "UNITY_ROLLOUT_TEST_RUN": marker}
-    command = [sys.executable, "-m", "rollout.cli", "train", "--env", "unitysim:Basic"]
+    command = [sys.executable, "-m", "driver.cli", "train", "--env", "unitysim:Basic"]
     command += ["--no-progress", "--max-steps", "2000", "--results-dir", str(tmp_path)]
     command += ["--cpus", "1", "--max-seconds", "300"]
     runs = [

@@ -9,13 +9,13 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def cli(*args: str, timeout: float = 120, **env: str) -> subprocess.CompletedProcess:
     """``unity-rollout ARGS`` from the checkout, as a user runs it."""
     return subprocess.run(
-        [sys.executable, "-m", "rollout.cli", *args],
+        [sys.executable, "-m", "driver.cli", *args],
         cwd=ROOT,
         capture_output=True,
         text=True,

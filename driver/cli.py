@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 from rollout.restarts import RestartPolicy
 
 if TYPE_CHECKING:
-    from rollout.local_ray import BackgroundRay
+    from driver.local_ray import BackgroundRay
 
 Command = Callable[[argparse.Namespace], int]
 
@@ -37,7 +37,7 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
     import platform
     from importlib import metadata
 
-    from rollout import compat
+    import mlagents_compat as compat
 
     fixes = compat.install()
     import mlagents_envs.environment  # noqa: F401  (proves the import works)
@@ -63,7 +63,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
     if not args.address:
         _loopback_only_ray()
-    from rollout.local_ray import BackgroundRay
+    from driver.local_ray import BackgroundRay
 
     # Ray comes up while the imports below (torch and friends) load.
     starting = None if args.address else BackgroundRay(args.cpus, args.dashboard)
@@ -79,8 +79,8 @@ def _train(args: argparse.Namespace, starting: BackgroundRay | None) -> int:
 
     from rich.console import Console
 
+    from driver.train import TrainingError, TrainOptions, train
     from rollout.service import RolloutError
-    from rollout.train import TrainingError, TrainOptions, train
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     console = Console(stderr=True)
@@ -169,10 +169,10 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     import ray
     from rich.console import Console
 
-    from learners.acting import actor_factory
-    from rollout.local_ray import init_local_ray
+    from driver.counting_learner import CountingLearner
+    from driver.local_ray import init_local_ray
+    from learners.factory import actor_factory
     from rollout.service import RolloutService, ServiceConfig
-    from rollout.testing import CountingLearner
     from rollout.unity import UnityConfig, UnityError, resolve_build
 
     console = Console()

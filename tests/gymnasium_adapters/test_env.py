@@ -14,7 +14,7 @@ from gymnasium import spaces
 from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
-from rollout.gymnasium_env import AgentSetError, UnityGymEnv, UnityVectorEnv
+from gymnasium_adapters import AgentSetError, UnityGymEnv, UnityVectorEnv
 from rollout.restarts import RestartPolicy
 from rollout.unity import UnityConfig, UnityError
 from tests.helpers import leak_checked_allocator, wait_gone

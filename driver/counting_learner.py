@@ -1,0 +1,74 @@
+"""The learner of ``unity-rollout collect``, a pipeline check without training, and the
+stand-in learner of the rollout side's tests and benchmarks.
+
+It consumes segments, counts what it got (steps, trajectories, bytes, the policy versions
+that acted), and publishes a new weights version every ``bump_every`` submissions, or, with
+a ``demand``, once that many steps came since the last version (as an on-policy learner
+would, "updating" for ``update_seconds``); handing out a new version takes ``weights_seconds``.
+The weights themselves are empty: workers keep their own and stamp the newer version, so
+tests and benchmarks can see versions reach the workers and measure policy lag.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+
+from batches import keys
+from batches.contracts import Weights
+from batches.segment import Segment
+
+
+class CountingLearner:
+    def __init__(
+        self,
+        bump_every: int = 2,
+        demand: int | None = None,
+        update_seconds: float = 0.0,
+        weights_seconds: float = 0.0,
+    ) -> None:
+        self.bump_every = bump_every
+        self.demand, self.update_seconds = demand, update_seconds
+        self.weights_seconds = weights_seconds  # publishing takes this long
+        self.since_bump = 0  # steps since the last version (with a demand)
+        self.version = 0
+        self.submissions = 0
+        self.steps: Counter[str] = Counter()
+        self.trajectories: Counter[str] = Counter()
+        self.bytes = 0
+        self.versions_seen: Counter[int] = Counter()
+
+    def submit(self, segments: list[Segment]) -> tuple[int, int | None]:
+        for segment in segments:
+            self.steps[segment.behavior] += len(segment)
+            self.trajectories[segment.behavior] += int(segment.data[keys.NEXT][keys.DONE].sum())
+            self.bytes += segment.nbytes
+            self.versions_seen.update(segment.data[keys.POLICY_VERSION].tolist())
+            self.since_bump += len(segment)
+        if not segments:
+            return self.version, self._wanted()
+        self.submissions += 1
+        if self.demand is None and self.submissions % self.bump_every == 0:
+            self.version += 1
+        if self.demand is not None and self.since_bump >= self.demand:
+            time.sleep(self.update_seconds)
+            self.version, self.since_bump = self.version + 1, 0
+        return self.version, self._wanted()
+
+    def _wanted(self) -> int | None:
+        return None if self.demand is None else self.demand - self.since_bump
+
+    def weights(self) -> tuple[int, Weights]:
+        if self.version > 0:  # a new version (the first weights go out at the start)
+            time.sleep(self.weights_seconds)
+        return self.version, {}
+
+    def summary(self) -> dict:
+        return {
+            "version": self.version,
+            "submissions": self.submissions,
+            "steps": dict(self.steps),
+            "trajectories": dict(self.trajectories),
+            "bytes": self.bytes,
+            "versions_seen": dict(self.versions_seen),
+        }

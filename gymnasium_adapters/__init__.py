@@ -1,0 +1,7 @@
+"""Gymnasium adapters over one Unity behavior, for users of other RL libraries:
+``UnityGymEnv`` (one agent) and ``UnityVectorEnv`` (every agent of a behavior). See
+docs/gymnasium.md."""
+
+from gymnasium_adapters.env import AgentSetError, UnityGymEnv, UnityVectorEnv
+
+__all__ = ["AgentSetError", "UnityGymEnv", "UnityVectorEnv"]

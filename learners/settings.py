@@ -1,0 +1,90 @@
+"""A trainer config, resolved: the frozen settings of each behavior and of the run.
+
+Plain data with no parsing (``learners.config`` reads the YAML into these) and no torch,
+so the policy factory that workers unpickle, the learner and the driver all share them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from batches.contracts import base_name
+
+
+@dataclass(frozen=True)
+class NetworkSettings:
+    """ML-Agents ``network_settings``: hidden units and layers of the shared trunk."""
+
+    hidden_units: int = 128
+    num_layers: int = 2
+    normalize: bool = False  # running mean/variance normalization of vector observations
+    # "hyper": goal signals (ObservationType.GOAL_SIGNAL) condition the other features
+    # multiplicatively (one set of trunk weights per goal dimension, what ML-Agents'
+    # hypernetwork achieves); "none": goal signals are ordinary inputs.
+    goal_conditioning_type: str = "hyper"
+    # ML-Agents' image encoder (learners.encoders): simple, nature_cnn, resnet, match3 or
+    # fully_connected; each ends in a dense layer to hidden_units.
+    vis_encode_type: str = "simple"
+    # Not config keys: set by the learner's policy factory for SAC behaviors.
+    tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
+    conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter
+
+
+@dataclass(frozen=True)
+class Hyperparameters:
+    """``hyperparameters:`` of every trainer type; fields a trainer does not use keep defaults."""
+
+    batch_size: int = 1024
+    buffer_size: int = 10240
+    learning_rate: float = 3.0e-4
+    learning_rate_schedule: str = "linear"  # "linear" | "constant"
+    # PPO and IMPALA
+    beta: float = 5.0e-3  # entropy coefficient
+    epsilon: float = 0.2  # PPO clip (policy ratio and value change)
+    beta_schedule: str | None = None  # None: as learning_rate_schedule (ML-Agents' rule)
+    epsilon_schedule: str | None = None
+    lambd: float = 0.95  # GAE lambda
+    num_epoch: int = 3
+    # SAC
+    buffer_init_steps: int = 0
+    tau: float = 0.005
+    steps_per_update: float = 1.0
+    init_entcoef: float = 1.0
+    # our extensions, not ML-Agents keys:
+    max_policy_lag: int = 2  # PPO: rows acted by weights > this many versions old are dropped
+    vtrace_rho_clip: float = 1.0  # IMPALA V-trace rho-bar
+    vtrace_c_clip: float = 1.0  # IMPALA V-trace c-bar
+
+
+@dataclass(frozen=True)
+class TrainerSettings:
+    """The settings of one behavior, resolved (nothing left to merge)."""
+
+    trainer_type: str = "ppo"  # "ppo" | "sac" | "impala"
+    hyperparameters: Hyperparameters = field(default_factory=Hyperparameters)
+    network_settings: NetworkSettings = field(default_factory=NetworkSettings)
+    gamma: float = 0.99  # reward_signals.extrinsic.gamma
+    reward_strength: float = 1.0  # reward_signals.extrinsic.strength
+    max_steps: int = 500_000
+    time_horizon: int = 64
+    summary_freq: int = 50_000
+    checkpoint_interval: int = 500_000
+    keep_checkpoints: int = 5
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """A whole config file: per-behavior settings plus the run-level sections we use."""
+
+    behaviors: Mapping[str, TrainerSettings]
+    default: TrainerSettings  # default_settings over the built-in defaults
+    engine: Mapping[str, float | int | bool]  # only the engine_settings keys given
+    environment_parameters: Mapping[str, float]
+    unsupported: tuple[str, ...]  # dotted paths of known keys we do not implement
+    source: str = "<config>"
+    torch_device: str | None = None  # torch_settings.device (None: --device, else auto)
+
+    def for_behavior(self, behavior: str) -> TrainerSettings:
+        """Settings for ``behavior`` (``?team=`` ignored); ``default`` if not listed."""
+        return self.behaviors.get(base_name(behavior), self.default)
