@@ -47,10 +47,10 @@ class LearnerKeeper:
 
         learner = self._start()
         try:
-            source: Path | None = checkpoint.latest(self._run_dir)
-            state = checkpoint.load(source)
+            state = checkpoint.load(self._run_dir)
+            source = ", ".join(Path(file).name for file in state["files"])
         except FileNotFoundError:  # died before the first checkpoint: start over
-            source, state = None, ray.get(learner.state_dict.remote())
+            source, state = "the start", ray.get(learner.state_dict.remote())
         state = {**state, "version": max(int(state["version"]), service.version) + 1}
         ray.get(learner.load_state_dict.remote(state))
         service.replace_learner(learner)
@@ -58,7 +58,7 @@ class LearnerKeeper:
         log.warning(
             "the learner died (%s); restored from %s at step %d (restart %d of at most %d)",
             cause,
-            source.name if source else "the start",
+            source,
             int(state["step"]),
             restart,
             self.max_restarts,

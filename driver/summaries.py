@@ -165,7 +165,9 @@ class Summaries:
     ) -> None:
         writer = self.writers.get(behavior)
         if writer is None:
-            writer = self.writers[behavior] = ScalarWriter(str(self.run_dir / _safe(behavior)))
+            writer = self.writers[behavior] = ScalarWriter(
+                str(self.run_dir / behavior_folder(behavior))
+            )
         episodes, return_sum, length_sum = totals or (window.episodes, 0.0, 0)
         new = episodes - window.episodes
         line = "No episode was completed since last summary."  # mlagents-learn's words
@@ -240,5 +242,6 @@ def _faults_text(faults: dict[str, int]) -> str:
     )
 
 
-def _safe(behavior: str) -> str:
+def behavior_folder(behavior: str) -> str:
+    """A behavior's folder name in the run directory (``3DBall?team=0`` -> ``3DBall_team0``)."""
     return behavior.replace("?", "_").replace("=", "")

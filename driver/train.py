@@ -19,19 +19,21 @@ import signal
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import Any, Literal
+from typing import Any
 
 import ray
 import yaml
 from ray.exceptions import RayActorError
 
+from driver.checkpoints import Checkpoints
 from driver.learner_keeper import LearnerKeeper
 from driver.local_ray import BackgroundRay, init_local_ray
+from driver.options import TrainingError, TrainOptions
 from driver.startup import first_steps, startup_times
-from driver.summaries import Summaries, next_multiple
+from driver.summaries import Summaries
 from learners.config import ConfigError, config_for_env, load_config, parse_config
 from learners.devices import DeviceError, learner_device
 from learners.factory import policy_factory
@@ -39,7 +41,7 @@ from learners.remote import learner_actor
 from learners.settings import RunConfig
 from learners.trainers import trainer
 from rollout.membership import request_workers, workers_wanted
-from rollout.restarts import RestartPolicy
+from rollout.segments import Horizons
 from rollout.service import (
     LearnerDied,
     RolloutError,
@@ -50,37 +52,6 @@ from rollout.service import (
 from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
 
 log = logging.getLogger(__name__)
-
-
-class TrainingError(Exception):
-    """A one-line problem with the run's options, found before anything starts."""
-
-
-@dataclass(frozen=True)
-class TrainOptions:
-    env: str = "unitysim:3DBall"  # unitysim:<Env>, a path to a build, or "editor"
-    workers: int | Literal["auto"] = 2  # auto: one per CPU left after the learner's, elastic
-    config: str | None = None  # ML-Agents trainer config; default: config/<Env>.yaml
-    run_id: str = "run"
-    results_dir: str = "results"
-    seed: int = 0
-    resume: bool = False
-    resume_if_exists: bool = False  # resume when the run has a checkpoint, else start fresh
-    force: bool = False
-    max_steps: int | None = None  # overrides every behavior's max_steps
-    max_seconds: float | None = None
-    cpus: int = 2  # local mode: ray.init(num_cpus=cpus)
-    address: str | None = None  # join an existing Ray cluster instead ("auto" in a job)
-    progress: bool = True
-    num_areas: int = 1
-    restarts: RestartPolicy = field(default_factory=RestartPolicy)  # of each Unity instance
-    timeout_wait: int = 60  # seconds for Unity to connect or answer (mlagents-learn's)
-    max_learner_restarts: int = 3  # learner deaths a run survives (from its last checkpoint)
-    learner_cpus: float = 1.0  # --workers auto: CPUs of the cluster left to the learner
-    max_workers: int | None = None  # --workers auto: at most this many (autoscaler's goal)
-    collect_ahead: int = 0  # on-policy: steps collected past the learner's demand (service)
-    device: str | None = None  # the learner's; None: torch_settings.device, else auto
-    mixed_precision: bool = False  # the learner's image encoders in bfloat16 autocast
 
 
 @dataclass(frozen=True)
@@ -105,7 +76,7 @@ def load_run_config(options: TrainOptions) -> RunConfig:
 def prepare_run_dir(options: TrainOptions) -> tuple[Path, dict[str, Any] | None]:
     """The run directory, and the checkpoint to resume from (None for a fresh run)."""
     run_dir = Path(options.results_dir) / options.run_id
-    has_checkpoints = any((run_dir / "checkpoints").glob("*.pt"))
+    has_checkpoints = any((run_dir / "checkpoints").rglob("*.pt"))
     if options.resume or (options.resume_if_exists and has_checkpoints):
         if not has_checkpoints:
             raise TrainingError(f"--resume: no checkpoint in {run_dir}/checkpoints to resume from")
@@ -122,14 +93,6 @@ def prepare_run_dir(options: TrainOptions) -> tuple[Path, dict[str, Any] | None]
 
 def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> UnityConfig:
     build = None if options.env == "editor" else options.env
-    if build is None and options.workers != 1:
-        raise TrainingError("--env editor: there is one editor (port 5004), so use --workers 1")
-    if options.workers != "auto" and options.workers < 1:
-        raise TrainingError(f"--workers: at least 1, or auto; got {options.workers}")
-    if options.max_workers is not None and (options.workers != "auto" or options.max_workers < 1):
-        raise TrainingError("--max-workers: a number of at least 1, with --workers auto")
-    if options.timeout_wait < 1:
-        raise TrainingError(f"--timeout-wait: at least 1 (seconds), got {options.timeout_wait}")
     try:
         resolve_build(build)
     except UnityError as error:
@@ -170,6 +133,38 @@ def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
     )
 
 
+def service_config(
+    options: TrainOptions, config: RunConfig, unity: UnityConfig, resume: bool
+) -> ServiceConfig:
+    """How the service runs the workers: their number (elastic: from the cluster), each
+    behavior's time horizon, and how much a learner of these trainer types takes at once."""
+    elastic = options.workers == "auto"
+    if elastic and options.max_workers:
+        request_workers(options.max_workers, 1.0, options.learner_cpus)
+    if elastic:
+        workers = workers_wanted(1.0, options.learner_cpus, options.max_workers)
+    else:
+        workers = int(options.workers)
+    horizons = Horizons(
+        config.default.time_horizon,
+        {name: s.time_horizon for name, s in config.behaviors.items()},
+    )
+    asynchronous = any(trainer(s).asynchronous for s in config.behaviors.values())
+    return ServiceConfig(
+        unity,
+        num_workers=workers,
+        horizon=horizons,
+        collects_per_worker=2 if asynchronous else 1,
+        learner_in_flight=4 if asynchronous else 2,
+        worker_cpus=1.0 if options.address or elastic else min(1.0, options.cpus / workers),
+        elastic=elastic,
+        max_workers=options.max_workers,
+        learner_cpus=options.learner_cpus,
+        await_learner_weights=resume,
+        collect_ahead=options.collect_ahead,
+    )
+
+
 def build_system(
     options: TrainOptions,
     config: RunConfig,
@@ -181,30 +176,8 @@ def build_system(
     learner = start_learner(options, config, device)
     if resume is not None:
         ray.get(learner.load_state_dict.remote(resume))
-    elastic = options.workers == "auto"
-    if elastic and options.max_workers:
-        request_workers(options.max_workers, 1.0, options.learner_cpus)
-    if elastic:
-        workers = workers_wanted(1.0, options.learner_cpus, options.max_workers)
-    else:
-        workers = int(options.workers)
-    horizons = [s.time_horizon for s in config.behaviors.values()] or [config.default.time_horizon]
-    asynchronous = any(trainer(s).asynchronous for s in config.behaviors.values())
-    service_config = ServiceConfig(
-        unity,
-        num_workers=workers,
-        horizon=min(horizons),
-        collects_per_worker=2 if asynchronous else 1,
-        learner_in_flight=4 if asynchronous else 2,
-        worker_cpus=1.0 if options.address or elastic else min(1.0, options.cpus / workers),
-        elastic=elastic,
-        max_workers=options.max_workers,
-        learner_cpus=options.learner_cpus,
-        await_learner_weights=resume is not None,
-        collect_ahead=options.collect_ahead,
-    )
-    factory = policy_factory(config, options.seed)
-    return RolloutService(service_config, factory, learner), learner
+    settings = service_config(options, config, unity, resume is not None)
+    return RolloutService(settings, policy_factory(config, options.seed), learner), learner
 
 
 @contextmanager
@@ -223,31 +196,10 @@ def stop_on_signals() -> Iterator[list[str]]:
             signal.signal(signum, old)
 
 
-class Checkpoints:
-    """Periodic and final checkpoints in ``<run dir>/checkpoints``, keeping the newest N."""
-
-    def __init__(self, run_dir: Path, interval: int, keep: int, start_step: int) -> None:
-        self.directory = run_dir / "checkpoints"
-        self.interval, self.keep = interval, max(keep, 1)
-        self.next_step = next_multiple(start_step, interval)
-
-    def due(self, step: int) -> bool:
-        return step >= self.next_step
-
-    def save(self, state: dict[str, Any], meta: dict[str, Any]) -> Path:
-        step = int(state["step"])
-        from learners import checkpoint
-
-        path = checkpoint.save(self.directory / f"step-{step:010d}.pt", {**state, "meta": meta})
-        self.next_step = next_multiple(step, self.interval)
-        for old in sorted(self.directory.glob("step-*.pt"))[: -self.keep]:
-            old.unlink(missing_ok=True)
-        return path
-
-
 def train(options: TrainOptions, starting: BackgroundRay | None = None) -> TrainResult:
     """One training run. ``starting``: a local Ray the caller started in the background
     (waited for once the options are checked, left to the caller to stop)."""
+    options.validate()
     config = load_run_config(options)
     run_dir, resume = prepare_run_dir(options)
     unity = unity_config(options, config, run_dir)
@@ -292,13 +244,8 @@ def _run(
     run_dir: Path,
     resume: dict[str, Any] | None,
 ) -> TrainResult:
-    behaviors = list(config.behaviors.values()) or [config.default]
-    checkpoints = Checkpoints(
-        run_dir,
-        min(s.checkpoint_interval for s in behaviors),
-        max(s.keep_checkpoints for s in behaviors),
-        int(resume["step"]) if resume else 0,
-    )
+    start_steps = {n: int(b["steps"]) for n, b in resume["behaviors"].items()} if resume else {}
+    checkpoints = Checkpoints(run_dir, config, start_steps)
     device = choose_device(options, config)
     service, learner = build_system(options, config, unity, resume, device)
     keeper = LearnerKeeper(
@@ -318,9 +265,7 @@ def _run(
             run_dir,
             lambda behavior: config.for_behavior(behavior).summary_freq,
             options.progress,
-            start_steps={n: int(b["steps"]) for n, b in resume["behaviors"].items()}
-            if resume
-            else None,
+            start_steps=start_steps,
         ) as summaries,
     ):
         while not received:
@@ -329,8 +274,8 @@ def _run(
                 learner = keeper.learner
                 progress = ray.get(learner.progress.remote())
                 summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
-                if checkpoints.due(sum(progress["steps"].values())):
-                    checkpoints.save(ray.get(learner.state_dict.remote()), meta)
+                if due := checkpoints.due(progress["steps"]):
+                    checkpoints.save(ray.get(learner.state_dict.remote(due)), meta)
             except RolloutError:  # keep what was learned, then report the cause
                 try:
                     checkpoints.save(ray.get(keeper.learner.state_dict.remote()), meta)
@@ -343,7 +288,7 @@ def _run(
             if progress["done"] or (deadline is not None and time.perf_counter() >= deadline):
                 break
         state = ray.get(keeper.learner.state_dict.remote())  # after every submission sent
-        final = checkpoints.save(state, meta)
+        checkpoints.save(state, meta)
         # what the final checkpoint holds: the loop's last progress may predate submissions
         # still queued at the learner (its status calls do not wait for them)
         progress["steps"] = {name: b["steps"] for name, b in state["behaviors"].items()}
@@ -355,7 +300,7 @@ def _run(
         dict(progress["steps"]),
         int(progress["version"]),
         time.perf_counter() - started,
-        final,
+        checkpoints.directory,
         bool(received),
         latest,
     )
@@ -371,7 +316,7 @@ def _run(
                 },
                 "version": result.version,
                 "seconds": round(result.seconds, 1),
-                "checkpoint": str(final),
+                "checkpoint": str(checkpoints.directory),
                 "interrupted": received[0] if received else None,
                 "faults": {**service.metrics.faults(), "duplicate_steps": duplicates},
                 "ledger": service.ledger.summary(),

@@ -135,18 +135,20 @@ def export_onnx(network: ActorCritic, path: str | Path) -> Path:
 
 
 def export_checkpoint(source: str | Path, out_dir: str | Path | None = None) -> list[Path]:
-    """Export every behavior of a checkpoint (a ``.pt`` file or a run directory).
+    """Export every behavior of a checkpoint (a ``.pt`` file, or a run directory: each
+    behavior's newest).
 
     Files are named after the behavior with ``?`` replaced by ``_`` (``3DBall_team=0.onnx``).
-    ``out_dir`` defaults to ``<run dir>/exported`` when the checkpoint lies in a run's
-    ``checkpoints/`` directory, else to the checkpoint's own directory.
+    ``out_dir`` defaults to ``<run dir>/exported`` for a run or a checkpoint inside a run's
+    ``checkpoints/``, else to the checkpoint's own directory.
     """
     source = Path(source)
-    file = checkpoint.latest(source) if source.is_dir() else source
-    state = checkpoint.load(file)
+    state = checkpoint.load(source)
     if out_dir is None:
-        parent = file.parent
-        out_dir = parent.parent / "exported" if parent.name == "checkpoints" else parent
+        run = next((p.parent for p in (source, *source.parents) if p.name == "checkpoints"), None)
+        if run is None and source.is_dir():
+            run = source
+        out_dir = run / "exported" if run is not None else source.parent
     out_dir = Path(out_dir)
     return [
         export_onnx(network, out_dir / f"{behavior.replace('?', '_')}.onnx")

@@ -14,6 +14,7 @@ behaviors learning side by side do not make each other's data look stale.
 from __future__ import annotations
 
 import time
+from collections.abc import Collection
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -180,8 +181,9 @@ class CentralLearner:
         reports, self._reports = self._reports, []
         return reports
 
-    def state_dict(self) -> dict[str, Any]:
-        """Everything to resume (the layout of ``learners/checkpoint.py``), on the CPU."""
+    def state_dict(self, behaviors: Collection[str] | None = None) -> dict[str, Any]:
+        """Everything to resume (the layout of ``learners/checkpoint.py``), on the CPU: of
+        every behavior, or of ``behaviors`` (each checkpoints on its own schedule)."""
         return to_cpu(
             {
                 "step": sum(s.steps for s in self.behaviors.values()),
@@ -196,6 +198,7 @@ class CentralLearner:
                         "updates": list(s.updates),
                     }
                     for name, s in self.behaviors.items()
+                    if behaviors is None or name in behaviors
                 },
             }
         )

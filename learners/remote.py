@@ -153,9 +153,9 @@ class LearnerHost:
     def drain_reports(self) -> list[tuple[str, int, dict[str, float]]]:
         return self._learner.drain_reports() if self._learner is not None else []
 
-    def state_dict(self) -> dict[str, Any]:
+    def state_dict(self, behaviors: list[str] | None = None) -> dict[str, Any]:
         with self._lock:
-            return self.learner.state_dict()
+            return self.learner.state_dict(behaviors)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         with self._lock:

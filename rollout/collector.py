@@ -28,7 +28,7 @@ from batches.contracts import Actor, ActorFactory, Weights
 from batches.segment import Segment
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
-from rollout.segments import Decisions, SegmentBuilder, allowed_mask
+from rollout.segments import Decisions, Horizons, SegmentBuilder, allowed_mask
 from rollout.unity import (
     RECOVERABLE,
     UnityConfig,
@@ -70,13 +70,13 @@ class Collector:
         self,
         unity: UnityConfig,
         actor_factory: ActorFactory,
-        horizon: int = 64,
+        horizon: int | Horizons = 64,
         worker: int = 0,
         allocator: PortAllocator | None = None,
     ) -> None:
         self.unity = UnityInstance(unity, allocator)
         self.actor_factory = actor_factory
-        self.horizon = horizon
+        self.horizons = Horizons.of(horizon)  # each behavior's time_horizon
         self.worker = worker
         self.builders: dict[str, SegmentBuilder] = {}
         self.actors: dict[str, Actor] = {}
@@ -191,7 +191,7 @@ class Collector:
     def _add_behavior(self, behavior: str, spec: BehaviorSpec) -> SegmentBuilder:
         pixels = self.unity.png_sensors(behavior) or frozenset()
         builder = SegmentBuilder(
-            behavior, spec, self.horizon, worker=self.worker, pixel_sensors=pixels
+            behavior, spec, self.horizons(behavior), worker=self.worker, pixel_sensors=pixels
         )
         self.builders[behavior] = builder
         actor = self.actor_factory(behavior, spec)

@@ -19,17 +19,41 @@ per-slot buffers, never a Python loop over agents.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
 
 from batches import keys, specs
+from batches.contracts import base_name
 from batches.segment import Segment
 
 INITIAL_SLOTS = 16
 STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
 GONE_AFTER = 64  # at least: exchanges an ended agent may stay away before its slot is freed
+
+
+@dataclass(frozen=True)
+class Horizons:
+    """Where each behavior's rows are cut: its own ``time_horizon``, as ML-Agents cuts each
+    behavior's trajectories; ``behaviors`` is keyed as trainer configs name them (without
+    ``?team=``), ``default`` serves the others."""
+
+    default: int = 64
+    behaviors: Mapping[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, horizon: int | Horizons) -> Horizons:
+        return horizon if isinstance(horizon, Horizons) else cls(horizon)
+
+    def __call__(self, behavior: str) -> int:
+        return self.behaviors.get(base_name(behavior), self.default)
+
+    @property
+    def shortest(self) -> int:
+        """The shortest configured row: the least a collect should ask for."""
+        return min(self.behaviors.values()) if self.behaviors else self.default
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,7 @@ from ray.exceptions import ObjectLostError, RayActorError, RayError
 from batches.contracts import ActorFactory
 from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, steps_of
 from rollout.membership import Membership
+from rollout.segments import Horizons
 from rollout.service_config import LearnerDied, RolloutError, ServiceConfig, last_line
 from rollout.service_metrics import ServiceMetrics, WorkerReports
 from rollout.supervision import WorkerSupervision
@@ -202,7 +203,7 @@ class RolloutService(WorkerSupervision):
         if missing <= 0:
             return  # in flight already fills the next update: wait for its weights
         # at least a row's worth each: rows arrive whole, so a smaller ask only adds round trips
-        share = max(math.ceil(missing / len(idle)), self.config.horizon)
+        share = max(math.ceil(missing / len(idle)), Horizons.of(self.config.horizon).shortest)
         for index in idle:
             self._issue(index, share)
         self._idle.difference_update(idle)

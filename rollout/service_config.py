@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from rollout.ports import PortRange
+from rollout.segments import Horizons
 from rollout.unity import UnityConfig
 
 
@@ -27,7 +28,7 @@ def last_line(error: Exception) -> str:
 class ServiceConfig:
     unity: UnityConfig
     num_workers: int = 2
-    horizon: int = 64  # steps after which a row is cut (ML-Agents' time_horizon)
+    horizon: int | Horizons = 64  # steps after which a row is cut (ML-Agents' time_horizon)
     min_steps: int = 512  # steps of finished rows a collect call waits for (no demand)
     max_collect_s: float = 0.5  # ... or this long, so data and metrics keep flowing
     collects_per_worker: int = 1

@@ -18,6 +18,7 @@ from batches.contracts import ActorFactory, Weights
 from rollout.collector import Collector, CollectorMetrics
 from rollout.ledger import Collected
 from rollout.ports import PortAllocator, PortRange
+from rollout.segments import Horizons
 from rollout.unity import UnityConfig
 
 
@@ -32,7 +33,7 @@ class RolloutWorker:
         index: int,
         unity: UnityConfig,
         actor_factory: ActorFactory,
-        horizon: int,
+        horizon: int | Horizons,
         port_range: PortRange | None = None,
         registry_dir: str | None = None,
     ) -> None:

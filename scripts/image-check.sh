@@ -280,7 +280,7 @@ run_checks() {
     ((status == 0)) || fail "docker stop: exit $status, wanted 0 (see $LOGS/stop.log)"
     expect stop.log "^stopped by SIGINT/SIGTERM: " "docker stop"
     grep -q '"interrupted": "SIGTERM"' "$dir/run/summary.json" || fail "docker stop: summary.json"
-    compgen -G "$dir/run/checkpoints/step-*.pt" >/dev/null || fail "docker stop: no checkpoint"
+    compgen -G "$dir/run/checkpoints/*/step-*.pt" >/dev/null || fail "docker stop: no checkpoint"
     step "docker stop: graceful in $took s, exit 0, checkpoint written"
 
     dir=$(results_dir other-uid 12345 700)

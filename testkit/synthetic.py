@@ -18,6 +18,7 @@ from batches.segment import Segment
 from rollout.collector import Collector, CollectorMetrics
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator, PortRange
+from rollout.segments import Horizons
 from rollout.unity import UnityConfig
 
 
@@ -45,7 +46,7 @@ class SyntheticWorker:
         index: int,
         unity: UnityConfig,
         actor_factory: ActorFactory,
-        horizon: int,
+        horizon: int | Horizons,
         port_range: PortRange | None = None,
         registry_dir: str | None = None,
     ) -> None:

@@ -20,7 +20,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from driver.train import TrainOptions, prepare_run_dir
+from driver.options import TrainOptions
+from driver.train import prepare_run_dir
 from learners import checkpoint
 from learners.config import CONFIG_DIR
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
@@ -43,7 +44,7 @@ def write_config(results: Path, **settings: int) -> None:
 
 def wait_for_checkpoints(driver: subprocess.Popen, checkpoints: Path, count: int) -> None:
     deadline = time.monotonic() + 240  # a safety stop: the budget is checkpoints
-    while len(list(checkpoints.glob("step-*.pt"))) < count:
+    while len(list(checkpoints.rglob("step-*.pt"))) < count:
         assert driver.poll() is None, driver.communicate()[0][-2000:]
         assert time.monotonic() < deadline, f"no checkpoint #{count}"
         time.sleep(0.2)

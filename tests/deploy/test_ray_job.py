@@ -63,7 +63,7 @@ def test_job_submit_trains_on_unitysim(cluster, tmp_path):
     assert "finished:" in logs and "steps" in logs, logs[-3000:]
     summary = json.loads((results / "job" / "summary.json").read_text())
     assert isinstance(summary["steps"], int) and summary["steps"] >= JOB_MAX_STEPS, summary
-    assert list((results / "job" / "checkpoints").glob("*.pt"))
+    assert list((results / "job" / "checkpoints").rglob("*.pt"))
 
 
 def test_submit_without_token_is_refused(cluster, tmp_path):

@@ -22,7 +22,8 @@ import psutil
 import pytest
 import torch
 
-from driver.train import TrainingError, TrainOptions, train
+from driver.options import TrainingError, TrainOptions
+from driver.train import train
 from learners import checkpoint
 from learners.export import export_checkpoint
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
@@ -149,11 +150,16 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
     ("options", "message"),
     [
         (TrainOptions(env="editor", workers=2), "--workers 1"),
-        (TrainOptions(workers=0), "--workers: at least 1"),
+        (TrainOptions(workers=0), "--workers: at least 1, got 0"),
         (TrainOptions(env="/nonexistent/Game.x86_64"), "/nonexistent/Game"),
         (TrainOptions(config="/nonexistent.yaml"), "/nonexistent.yaml"),
         (TrainOptions(config="/"), "/: cannot read"),  # a directory
         (TrainOptions(timeout_wait=0), "--timeout-wait: at least 1"),
+        (TrainOptions(max_steps=-1), "--max-steps: at least 1, got -1"),
+        (TrainOptions(num_areas=0), "--num-areas: at least 1, got 0"),
+        (TrainOptions(run_id="../escape"), "--run-id: one directory name"),
+        (TrainOptions(run_id="a/b"), "--run-id: one directory name"),
+        (TrainOptions(run_id="."), "--run-id: one directory name"),
         (TrainOptions(workers=2, max_workers=4), "--max-workers: a number of at least 1, with"),
         (TrainOptions(workers="auto", max_workers=0), "--max-workers: a number of at least 1"),
     ],
@@ -262,9 +268,7 @@ def test_restart_limits_and_timeout_reach_every_unity_instance(tmp_path):
     from driver.train import load_run_config, unity_config
     from rollout.restarts import RestartPolicy
 
-    options = TrainOptions(
-        env="unitysim:Basic", restarts=RestartPolicy(rate_limit_n=3), timeout_wait=7
-    )
+    options = TrainOptions(env="unitysim:Basic", restarts_rate_limit_n=3, timeout_wait=7)
     unity = unity_config(options, load_run_config(options), tmp_path)
     assert unity.restarts == RestartPolicy(rate_limit_n=3) and unity.timeout_wait == 7
 

@@ -17,6 +17,7 @@ from batches.specs import spec_from_dict, step_spec
 from learners.factory import actor_factory
 from rollout.collector import NO_AGENT_STEPS, Collector
 from rollout.restarts import RestartPolicy
+from rollout.segments import Horizons
 from rollout.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import leak_checked_allocator, trajectories
 
@@ -252,3 +253,25 @@ def test_cameras_sent_as_png_reach_the_learner_as_uint8(allocator):
         .expand(*batch.batch_size)
         .is_in(batch.exclude(*keys.METADATA))
     )
+
+
+def test_each_behavior_cuts_its_rows_at_its_own_time_horizon(allocator):
+    """Two behaviors, two time horizons (ML-Agents cuts each trainer's trajectories at its
+    own): every Striker row ends by 5 steps and every Goalie row by 9, the long ones at
+    exactly that."""
+    horizons = Horizons(64, {"Striker": 5, "Goalie": 9})
+    collector = Collector(
+        UnityConfig("unitysim:StrikersVsGoalie", seed=3), actor_factory, horizons, 0, allocator
+    )
+    try:
+        lengths: dict[str, set[int]] = {}
+        while len(lengths) < 2 or sum(len(found) for found in lengths.values()) < 4:
+            for segment in collect(collector, 200):
+                behavior = segment.get_non_tensor(keys.BEHAVIOR)
+                rows = trajectories(segment)
+                lengths.setdefault(behavior.split("?")[0], set()).update(
+                    row.stop - row.start for row in rows
+                )
+        assert max(lengths["Striker"]) == 5 and max(lengths["Goalie"]) == 9, lengths
+    finally:
+        collector.close()

@@ -1,0 +1,102 @@
+"""Per-behavior keys stay per behavior: each behavior checkpoints at its own interval and
+keeps its own count, and cuts its rows at its own time horizon (as ML-Agents'
+trainers do), and a run resumes each behavior from its newest readable file."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+import torch
+
+from driver.checkpoints import Checkpoints
+from learners import checkpoint
+from learners.config import parse_config
+
+TWO = {
+    "behaviors": {
+        "Striker": {"checkpoint_interval": 100, "keep_checkpoints": 2, "time_horizon": 16},
+        "Goalie": {"checkpoint_interval": 250, "keep_checkpoints": 3, "time_horizon": 40},
+    }
+}
+NAMES = {"Striker": "Striker?team=0", "Goalie": "Goalie?team=1"}
+
+
+def entry(steps: int) -> dict:
+    return {"network": {"w": torch.full((2,), float(steps))}, "steps": steps, "updates": []}
+
+
+def learner_state(steps: dict[str, int], version: int, only: list[str] | None = None) -> dict:
+    """What the learner's ``state_dict(only)`` returns."""
+    behaviors = {b: entry(n) for b, n in steps.items() if only is None or b in only}
+    return {"step": sum(steps.values()), "version": version, "behaviors": behaviors}
+
+
+def run(tmp_path, until: int, start: dict[str, int] | None = None) -> Checkpoints:
+    """Both behaviors step 50 at a time (the Goalie half as fast); the driver saves the
+    due ones after each step, as its loop does, and everything at the end."""
+    saver = Checkpoints(tmp_path, parse_config(TWO), start or {})
+    steps = dict.fromkeys(NAMES.values(), 0) | (start or {})
+    for version in range(1, until // 50 + 1):
+        steps[NAMES["Striker"]] += 50
+        steps[NAMES["Goalie"]] += 25
+        if due := saver.due(steps):
+            saver.save(learner_state(steps, version, due), {"run_id": "two"})
+    saver.save(learner_state(steps, until // 50), {"run_id": "two"})
+    return saver
+
+
+def saved_steps(tmp_path, folder: str) -> list[int]:
+    return sorted(int(p.stem.split("-")[1]) for p in (tmp_path / "checkpoints" / folder).glob("*"))
+
+
+def test_each_behavior_checkpoints_at_its_own_interval_and_keeps_its_own_count(tmp_path):
+    run(tmp_path, 1000)
+    # Striker: 100, 200 ... 1000 (10 saves), the newest 2 kept; Goalie: 250, 500 (+ 500 at
+    # the end), the newest 3 kept
+    assert saved_steps(tmp_path, "Striker_team0") == [900, 1000]
+    assert saved_steps(tmp_path, "Goalie_team1") == [250, 500]
+    state = checkpoint.load(tmp_path)
+    assert {b: e["steps"] for b, e in state["behaviors"].items()} == {
+        NAMES["Striker"]: 1000,
+        NAMES["Goalie"]: 500,
+    }
+    assert state["step"] == 1500 and state["version"] == 20
+
+
+def test_a_resumed_run_checkpoints_from_where_each_behavior_was(tmp_path):
+    run(tmp_path, 1000)
+    state = checkpoint.load(tmp_path)
+    start = {b: int(e["steps"]) for b, e in state["behaviors"].items()}
+    saver = Checkpoints(tmp_path, parse_config(TWO), start)
+    assert saver.next_step == {NAMES["Striker"]: 1100, NAMES["Goalie"]: 750}
+
+
+def test_a_corrupt_newest_checkpoint_is_named_and_the_one_before_used(tmp_path, caplog):
+    run(tmp_path, 1000)
+    newest = tmp_path / "checkpoints" / "Striker_team0" / "step-0000001000.pt"
+    newest.write_bytes(newest.read_bytes()[:10])  # as a kill mid-write without the rename
+    with caplog.at_level(logging.WARNING):
+        state = checkpoint.load(tmp_path)
+    assert state["behaviors"][NAMES["Striker"]]["steps"] == 900
+    assert any(str(newest) in r.getMessage() for r in caplog.records)
+
+
+def test_no_readable_checkpoint_of_a_behavior_is_a_one_line_error(tmp_path):
+    run(tmp_path, 1000)
+    for path in (tmp_path / "checkpoints" / "Goalie_team1").glob("*.pt"):
+        path.write_bytes(b"garbage")
+    with pytest.raises(checkpoint.CheckpointError, match="Goalie_team1: no readable") as error:
+        checkpoint.load(tmp_path)
+    assert "\n" not in str(error.value)
+
+
+def test_the_service_cuts_each_behaviors_rows_at_its_own_time_horizon():
+    from driver.options import TrainOptions
+    from driver.train import service_config
+    from rollout.segments import Horizons
+    from rollout.unity import UnityConfig
+
+    settings = service_config(TrainOptions(), parse_config(TWO), UnityConfig(None), False)
+    assert settings.horizon == Horizons(64, {"Striker": 16, "Goalie": 40})
+    assert settings.horizon(NAMES["Goalie"]) == 40 and settings.horizon("Other") == 64
