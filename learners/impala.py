@@ -24,14 +24,14 @@ from torchrl.objectives.value.functional import vtrace_advantage_estimate
 from batches import keys
 from learners.devices import Compute
 from learners.modules import FLAT_ACTION, obs_keys, probabilistic_actor, value_operator
-from learners.onpolicy import (
+from learners.policies import ActorCritic
+from learners.ppo import (
     SegmentBuffer,
     actor_critic_report,
     gradient_step,
     means,
     set_learning_rate,
 )
-from learners.policies import ActorCritic
 from learners.schedules import decay
 
 if TYPE_CHECKING:

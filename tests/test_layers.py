@@ -161,3 +161,15 @@ def test_the_check_sees_a_circle_through_a_lazy_import(tmp_path):
     (package / "c.py").write_text("import learners.a\n")
     (package / "d.py").write_text("from learners.a import thing\n")
     assert circles(module_graph(tmp_path)) == [["learners.a", "learners.b", "learners.c"]]
+
+
+def test_no_module_over_400_lines():
+    """Small modules with one role each: the product, its tooling, tests and benchmarks."""
+    folders = [*ALLOWED, "tests", "benchmarks"]
+    long = {
+        str(path.relative_to(ROOT)): lines
+        for folder in folders
+        for path in (ROOT / folder).rglob("*.py")
+        if (lines := len(path.read_text().splitlines())) > 400
+    }
+    assert long == {}

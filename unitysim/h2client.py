@@ -7,42 +7,53 @@ compression, no deadlines after the handshake. :class:`H2Channel` does exactly t
 a plain TCP socket: HTTP/2 framing, SETTINGS/PING/WINDOW_UPDATE/GOAWAY/RST_STREAM, flow
 control both ways (requests of several MB wait for the server's window), and response
 header blocks decoded with ``hpack`` (one decoder per connection, as HPACK state requires).
+The frames, the request header block and a connection's state are in
+:mod:`unitysim.h2connection`; this module makes the call on them.
 
 It owns one connection at a time (reconnecting lazily after the server closed one) and
-maps every failure to :class:`RpcError`, a ``grpc.RpcError`` with ``code()``, so callers
-handle both clients alike. It does not do TLS, streaming calls, concurrent calls, retries
-or proxies; the player keeps grpcio as a fallback (``UNITYSIM_GRPC_CLIENT=grpcio``).
+maps every failure to :class:`~unitysim.h2connection.RpcError`, a ``grpc.RpcError`` with
+``code()``, so callers handle both clients alike. It does not do TLS, streaming calls,
+concurrent calls, retries or proxies; the player keeps grpcio as a fallback
+(``UNITYSIM_GRPC_CLIENT=grpcio``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import socket
 import struct
 import time
 from urllib.parse import unquote
 
-import grpc
-import hpack
+from unitysim.h2connection import (
+    ACK,
+    CONTINUATION,
+    DATA,
+    END_HEADERS,
+    END_STREAM,
+    FRAME_HEADER,
+    GOAWAY,
+    HEADERS,
+    MAX_WINDOW,
+    PADDED,
+    PING,
+    PRIORITY_FLAG,
+    PUSH_PROMISE,
+    RST_STREAM,
+    SETTING,
+    SETTINGS,
+    SETTINGS_INITIAL_WINDOW,
+    SETTINGS_MAX_FRAME,
+    U32,
+    WINDOW_UPDATE,
+    Connection,
+    RpcError,
+    StatusCode,
+    frame,
+    request_headers,
+)
 
-PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n"
-MAX_WINDOW = 2**31 - 1
-MAX_FRAME = 2**24 - 1
-DEFAULT_WINDOW = 65535
-DEFAULT_FRAME = 16384
-
-# Frame types and flags (RFC 9113 §6).
-DATA, HEADERS, PRIORITY, RST_STREAM, SETTINGS, PUSH_PROMISE, PING, GOAWAY = range(8)
-WINDOW_UPDATE, CONTINUATION = 8, 9
-END_STREAM, ACK, END_HEADERS, PADDED, PRIORITY_FLAG = 0x1, 0x1, 0x4, 0x8, 0x20
-SETTINGS_ENABLE_PUSH, SETTINGS_INITIAL_WINDOW, SETTINGS_MAX_FRAME = 2, 4, 5
-
-_FRAME = struct.Struct(">HBBBL")  # 24-bit length as 16 + 8 bits, type, flags, stream id
-_U32 = struct.Struct(">L")
-_SETTING = struct.Struct(">HL")
 _GRPC_PREFIX = struct.Struct(">BL")  # compressed flag, message length
 
-StatusCode = grpc.StatusCode
 _CODES = {code.value[0]: code for code in StatusCode}
 # HTTP/2 error codes of RST_STREAM / GOAWAY to gRPC (gRPC's "HTTP/2 to gRPC" mapping).
 _RST_CODES = {7: StatusCode.UNAVAILABLE, 8: StatusCode.CANCELLED, 11: StatusCode.RESOURCE_EXHAUSTED}
@@ -50,141 +61,6 @@ _RST_CODES[12] = StatusCode.PERMISSION_DENIED
 _HTTP_CODES = {400: StatusCode.INTERNAL, 401: StatusCode.UNAUTHENTICATED}
 _HTTP_CODES.update({403: StatusCode.PERMISSION_DENIED, 404: StatusCode.UNIMPLEMENTED})
 _HTTP_CODES.update(dict.fromkeys((429, 502, 503, 504), StatusCode.UNAVAILABLE))
-
-
-class RpcError(grpc.RpcError):
-    """A failed call: ``code()`` is a ``grpc.StatusCode``, as grpcio's errors have."""
-
-    def __init__(self, code: grpc.StatusCode, details: str = "") -> None:
-        super().__init__(f"{code.name}: {details}" if details else code.name)
-        self._code = code
-        self._details = details
-
-    def code(self) -> grpc.StatusCode:
-        return self._code
-
-    def details(self) -> str:
-        return self._details
-
-
-def frame(kind: int, flags: int, stream: int, payload: bytes = b"") -> bytes:
-    """One HTTP/2 frame: 9-byte header, then the payload."""
-    size = len(payload)
-    return _FRAME.pack(size >> 8, size & 0xFF, kind, flags, stream) + payload
-
-
-def _literal(name: str, value: str) -> bytes:
-    """HPACK literal header field without indexing, new name (RFC 7541 §6.2.2), no Huffman."""
-    out = b"\x00"
-    for text in (name.encode(), value.encode()):
-        if len(text) >= 127:
-            raise ValueError("header too long for a one-byte HPACK length")
-        out += bytes((len(text),)) + text
-    return out
-
-
-def request_headers(method: str, authority: str) -> bytes:
-    """The header block of every call, encoded once: it never touches HPACK's dynamic table."""
-    fields = (
-        (":method", "POST"),
-        (":scheme", "http"),
-        (":path", method),
-        (":authority", authority),
-        ("content-type", "application/grpc"),
-        ("te", "trailers"),
-    )
-    return b"".join(_literal(name, value) for name, value in fields)
-
-
-class _Connection:
-    """One HTTP/2 connection: a socket, its read buffer, flow-control windows, HPACK state."""
-
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        self.buffer = bytearray()
-        self.pos = 0
-        self.decoder = hpack.Decoder()
-        self.decoded: dict[bytes, list[tuple[str, str]]] = {}  # see decode_block
-        self.table_size = 0
-        self.table_first: object = None
-        self.send_window = DEFAULT_WINDOW  # connection level, ours towards the server
-        self.initial_window = DEFAULT_WINDOW  # the server's SETTINGS_INITIAL_WINDOW_SIZE
-        self.max_frame = DEFAULT_FRAME  # the server's SETTINGS_MAX_FRAME_SIZE
-        self.unacked = 0  # DATA bytes received since our last connection WINDOW_UPDATE
-        self.next_stream = 1
-        self.goaway: int | None = None  # the server's last stream id once it sent GOAWAY
-        self.closing = False  # GOAWAY, end of stream or a protocol error: no new calls
-        settings = b"".join(
-            _SETTING.pack(key, value)
-            for key, value in (
-                (SETTINGS_ENABLE_PUSH, 0),
-                (SETTINGS_INITIAL_WINDOW, MAX_WINDOW),
-                (SETTINGS_MAX_FRAME, MAX_FRAME),
-            )
-        )
-        sock.sendall(
-            PREFACE
-            + frame(SETTINGS, 0, 0, settings)
-            + frame(WINDOW_UPDATE, 0, 0, _U32.pack(MAX_WINDOW - DEFAULT_WINDOW))
-        )
-
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            self.sock.close()
-
-    def read_frame(self) -> tuple[int, int, int, bytes]:
-        """The next frame: (type, flags, stream id, payload); blocks until it is complete.
-
-        The payload is a copy: the buffer is compacted later, which no view may outlive."""
-        buffer, pos = self.buffer, self.pos
-        if len(buffer) - pos < 9:
-            self._fill(9)
-            buffer, pos = self.buffer, self.pos
-        high, low, kind, flags, stream = _FRAME.unpack_from(buffer, pos)
-        end = pos + 9 + (high << 8 | low)
-        if len(buffer) < end:
-            self._fill(end - pos)
-            buffer, pos = self.buffer, self.pos
-            end = pos + 9 + (high << 8 | low)
-        self.pos = end
-        with memoryview(buffer) as view:
-            payload = view[pos + 9 : end].tobytes()
-        return kind, flags, stream & 0x7FFFFFFF, payload
-
-    def _fill(self, needed: int) -> None:
-        """Read until ``needed`` bytes from ``pos`` are buffered (consumed bytes dropped)."""
-        if self.pos:
-            del self.buffer[: self.pos]
-            self.pos = 0
-        buffer = self.buffer
-        while len(buffer) < needed:
-            chunk = self.sock.recv(max(needed - len(buffer), 262144))
-            if not chunk:
-                self.closing = True
-                raise RpcError(StatusCode.UNAVAILABLE, "the server closed the connection")
-            buffer += chunk
-
-    def decode_block(self, block: bytes) -> list[tuple[str, str]]:
-        """Decode a header block (all of them: HPACK state is per connection).
-
-        gRPC servers send the same few blocks on every call, mostly indexed fields, which
-        hpack decodes at ~10 µs each. A block whose decoding left the dynamic table as it
-        was is remembered, and reused while the table stays unchanged (the same entries:
-        an insertion puts a new object first, an eviction shortens it)."""
-        entries = self.decoder.header_table.dynamic_entries
-        first = entries[0] if entries else None
-        if len(entries) != self.table_size or first is not self.table_first:
-            self.decoded.clear()
-            self.table_size, self.table_first = len(entries), first
-        cached = self.decoded.get(block)
-        if cached is not None:
-            return cached
-        headers = [(str(name), str(value)) for name, value in self.decoder.decode(block, raw=False)]
-        first = entries[0] if entries else None
-        unchanged = len(entries) == self.table_size and first is self.table_first
-        if unchanged and len(self.decoded) < 64:
-            self.decoded[block] = headers
-        return headers
 
 
 class _Call:
@@ -211,7 +87,7 @@ class H2Channel:
         self.port = port
         self.method = method
         self._headers = request_headers(method, f"{host}:{port}")
-        self._connection: _Connection | None = None
+        self._connection: Connection | None = None
 
     def __enter__(self) -> H2Channel:
         return self
@@ -257,7 +133,7 @@ class H2Channel:
             if deadline is not None and self._connection is connection:
                 connection.sock.settimeout(None)
 
-    def _connect(self, deadline: float | None, wait_for_ready: bool) -> _Connection:
+    def _connect(self, deadline: float | None, wait_for_ready: bool) -> Connection:
         delay = 0.01
         while True:
             remaining = None if deadline is None else deadline - time.monotonic()
@@ -275,12 +151,12 @@ class H2Channel:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             sock.settimeout(remaining)
             try:
-                return _Connection(sock)
+                return Connection(sock)
             except OSError as error:
                 sock.close()
                 raise RpcError(StatusCode.UNAVAILABLE, f"connection lost: {error}") from None
 
-    def _exchange(self, connection: _Connection, request: bytes) -> bytes:
+    def _exchange(self, connection: Connection, request: bytes) -> bytes:
         stream = connection.next_stream
         connection.next_stream += 2
         call = _Call(stream, connection.initial_window)
@@ -294,7 +170,7 @@ class H2Channel:
                 b"".join(
                     (
                         head,
-                        _FRAME.pack(size >> 8, size & 0xFF, DATA, END_STREAM, stream),
+                        FRAME_HEADER.pack(size >> 8, size & 0xFF, DATA, END_STREAM, stream),
                         prefix,
                         request,
                     )
@@ -307,7 +183,7 @@ class H2Channel:
             self._handle(connection, call, *connection.read_frame())
         return self._result(connection, call)
 
-    def _send_data(self, connection: _Connection, call: _Call, body: bytes) -> None:
+    def _send_data(self, connection: Connection, call: _Call, body: bytes) -> None:
         """DATA frames within the server's frame size and flow-control windows; stops early
         when the server has answered or reset the stream (e.g. a message over its limit)."""
         view = memoryview(body)
@@ -315,7 +191,7 @@ class H2Channel:
         while sent < len(body):
             if call.done or call.reset is not None:
                 if call.reset is None:  # answered while we were sending: we are done
-                    connection.sock.sendall(frame(RST_STREAM, 0, call.stream, _U32.pack(0)))
+                    connection.sock.sendall(frame(RST_STREAM, 0, call.stream, U32.pack(0)))
                 return
             size = min(
                 len(body) - sent, connection.max_frame, connection.send_window, call.send_window
@@ -325,7 +201,7 @@ class H2Channel:
                 continue
             flags = END_STREAM if sent + size == len(body) else 0
             connection.sock.sendall(
-                _FRAME.pack(size >> 8, size & 0xFF, DATA, flags, call.stream)
+                FRAME_HEADER.pack(size >> 8, size & 0xFF, DATA, flags, call.stream)
                 + view[sent : sent + size]
             )
             connection.send_window -= size
@@ -334,7 +210,7 @@ class H2Channel:
 
     def _handle(
         self,
-        connection: _Connection,
+        connection: Connection,
         call: _Call,
         kind: int,
         flags: int,
@@ -352,13 +228,11 @@ class H2Channel:
                 if flags & END_STREAM:
                     call.done = True
                 elif call.unacked > MAX_WINDOW // 2:
-                    connection.sock.sendall(
-                        frame(WINDOW_UPDATE, 0, stream, _U32.pack(call.unacked))
-                    )
+                    connection.sock.sendall(frame(WINDOW_UPDATE, 0, stream, U32.pack(call.unacked)))
                     call.unacked = 0
             connection.unacked += size
             if connection.unacked > MAX_WINDOW // 2:
-                connection.sock.sendall(frame(WINDOW_UPDATE, 0, 0, _U32.pack(connection.unacked)))
+                connection.sock.sendall(frame(WINDOW_UPDATE, 0, 0, U32.pack(connection.unacked)))
                 connection.unacked = 0
         elif kind == HEADERS:
             if flags & PADDED:
@@ -383,7 +257,7 @@ class H2Channel:
         elif kind == SETTINGS:
             if not flags & ACK:
                 for offset in range(0, len(payload) - 5, 6):
-                    key, value = _SETTING.unpack_from(payload, offset)
+                    key, value = SETTING.unpack_from(payload, offset)
                     if key == SETTINGS_INITIAL_WINDOW:
                         call.send_window += value - connection.initial_window
                         connection.initial_window = value
@@ -394,14 +268,14 @@ class H2Channel:
             if not flags & ACK:
                 connection.sock.sendall(frame(PING, ACK, 0, bytes(payload)))
         elif kind == WINDOW_UPDATE:
-            increment = _U32.unpack_from(payload)[0] & 0x7FFFFFFF
+            increment = U32.unpack_from(payload)[0] & 0x7FFFFFFF
             if stream == 0:
                 connection.send_window += increment
             elif stream == call.stream:
                 call.send_window += increment
         elif kind == RST_STREAM:
             if stream == call.stream:
-                call.reset = _U32.unpack_from(payload)[0]
+                call.reset = U32.unpack_from(payload)[0]
                 call.done = True
         elif kind == GOAWAY:
             last, error = struct.unpack_from(">LL", payload)
@@ -414,11 +288,11 @@ class H2Channel:
             raise self._fail(connection, f"unexpected frame type {kind}")
         # PRIORITY and unknown frame types are ignored, as HTTP/2 requires.
 
-    def _fail(self, connection: _Connection, reason: str) -> RpcError:
+    def _fail(self, connection: Connection, reason: str) -> RpcError:
         connection.closing = True
         return RpcError(StatusCode.INTERNAL, f"HTTP/2 protocol error: {reason}")
 
-    def _result(self, connection: _Connection, call: _Call) -> bytes:
+    def _result(self, connection: Connection, call: _Call) -> bytes:
         """The response message, or the call's status as an RpcError."""
         trailers = call.trailers if call.trailers is not None else call.headers or []
         fields = dict(trailers)

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import grpc
 import numpy as np
 
-from unitysim import messages, wire
+from unitysim import messages, wire, wire_input
 from unitysim.envs import load
 from unitysim.envs.base import AgentInfos, Behavior, Output, Parameters, SimEnv
 from unitysim.faults import Faults
@@ -142,7 +142,7 @@ class Player:
                 error.code() if hasattr(error, "code") else error,
             )
             return 1
-        init = wire.read_input(reply, {})
+        init = wire_input.read_input(reply, {})
         if init.status != 200:
             log.info("trainer refused the handshake (status %d)", init.status)
             return 0
@@ -155,7 +155,7 @@ class Player:
         session = Session(self.env_class, init.seed or 0, init.num_areas or 1)
         reply = exchange(messages.status_message(200))  # U2: the first real input comes back
         while True:
-            request = wire.read_input(reply, session.behaviors)
+            request = wire_input.read_input(reply, session.behaviors)
             if request.status != 200:
                 log.info("trainer closed the session (status %d)", request.status)
                 return 0

@@ -19,7 +19,8 @@ import pytest
 from mlagents_envs.exception import UnityEnvironmentException
 
 from tests.helpers import free_port
-from unitysim.h2client import H2Channel, RpcError
+from unitysim.h2client import H2Channel
+from unitysim.h2connection import RpcError
 from unitysim.player import CLIENTS, EXCHANGE
 
 SERVICE, METHOD = EXCHANGE[1:].split("/")

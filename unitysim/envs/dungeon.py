@@ -20,20 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import (
-    DT,
-    FAR,
-    MOVES,
-    ArenaEnv,
-    FrameStack,
-    Rays,
-    drive,
-    limits,
-    overlaps,
-    perceive,
-    steer,
-)
+from unitysim.envs.arena import DT, FAR, MOVES, ArenaEnv, drive, limits, overlaps, steer
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor, StatsMethod
+from unitysim.envs.perception import FrameStack, Rays, perceive
 
 HALF = (7.0, 7.0)
 RADIUS = 0.5

@@ -17,18 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import (
-    MOVES,
-    ArenaEnv,
-    FrameStack,
-    Rays,
-    drive,
-    limits,
-    overlaps,
-    perceive,
-    steer,
-)
+from unitysim.envs.arena import MOVES, ArenaEnv, drive, limits, overlaps, steer
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+from unitysim.envs.perception import FrameStack, Rays, perceive
 
 HALF = (6.0, 3.0)
 RADIUS = 0.5

@@ -19,20 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import (
-    DT,
-    FAR,
-    MOVES,
-    ArenaEnv,
-    Rays,
-    drive,
-    limits,
-    overlaps,
-    perceive,
-    steer,
-    uniform_in,
-)
+from unitysim.envs.arena import DT, FAR, MOVES, ArenaEnv, drive, limits, overlaps, steer, uniform_in
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+from unitysim.envs.perception import Rays, perceive
 
 HALF = (8.0, 8.0)
 RADIUS = 0.5

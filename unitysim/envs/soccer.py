@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import BallGame, Rays
+from unitysim.envs.ball_game import BallGame
 from unitysim.envs.base import Behavior, Sensor
+from unitysim.envs.perception import Rays
 
 BALL, OWN_GOAL, OPPOSING_GOAL, WALL, TEAMMATE, OPPONENT = range(6)
 TEAMS = (1, 0, 1, 0)  # team of each agent of a pitch, in id order

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import BallGame, Rays
+from unitysim.envs.ball_game import BallGame
 from unitysim.envs.base import Behavior, Sensor
+from unitysim.envs.perception import Rays
 
 STRIKER_FORWARD = Rays(5, 60.0, 20.0, 5)
 STRIKER_BACKWARD = Rays(1, 45.0, 20.0, 5, backward=True)

@@ -28,19 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import (
-    AXIS,
-    DT,
-    FAR,
-    ArenaEnv,
-    FrameStack,
-    Rays,
-    drive,
-    limits,
-    perceive,
-    steer,
-)
+from unitysim.envs.arena import AXIS, DT, FAR, ArenaEnv, drive, limits, steer
 from unitysim.envs.base import Actions, Behavior, Output, Parameters, Sensor
+from unitysim.envs.perception import FrameStack, Rays, perceive
 
 HALF = (9.0, 4.0)  # the platform; its long (y) sides are open
 RAY_FIELD = (9.6, 50.0)  # rays leave over the open sides unseen

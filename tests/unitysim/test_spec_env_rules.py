@@ -1,0 +1,112 @@
+"""The rules of the spec-faithful environments, driven by placing things (white-box).
+
+Why a module of its own: these tests put balls, agents and keys where a rule must fire and
+read the environments' state, where ``test_spec_envs.py`` only plays them from outside.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.unitysim.test_spec_envs import make
+from unitysim.envs.base import Actions, Output, SimEnv
+
+
+def idle(env: SimEnv, output: Output) -> dict[str, Actions]:
+    """Actions that do nothing: zeros (every branch's "none")."""
+    return {b.name: Actions.empty(b, int((~output[b.name].done).sum())) for b in env.behaviors}
+
+
+def step_until_done(env: SimEnv, output: Output, limit: int = 10) -> Output:
+    for _ in range(limit):
+        output = env.step(idle(env, output))
+        if any(infos.done.any() for infos in output.values()):
+            return output
+    pytest.fail("no terminal info")
+
+
+def rows_of(output: Output, ids: list[int], done: bool) -> dict[int, tuple[float, float, bool]]:
+    """agent id -> (reward, group reward, interrupted) of its done (or decision) rows."""
+    found = {}
+    for infos in output.values():
+        for i in np.flatnonzero(infos.done == done):
+            if infos.agent_id[i] in ids:
+                found[int(infos.agent_id[i])] = (
+                    float(infos.reward[i]),
+                    float(infos.group_reward[i]),
+                    bool(infos.max_step_reached[i]),
+                )
+    return found
+
+
+@pytest.mark.parametrize(
+    ("name", "scorers", "conceders"),
+    [("SoccerTwos", [1, 3], [0, 2]), ("StrikersVsGoalie", [0, 2], [1])],
+)
+def test_a_goal_ends_the_pitch_with_group_rewards(name, scorers, conceders):
+    env = make(name)
+    output = env.reset()
+    env.ball[0], env.ball_vel[0] = (7.5, 0.0), (10.0, 0.0)  # into the goal at +x
+    rows = rows_of(step_until_done(env, output), scorers + conceders, done=True)
+    assert sorted(rows) == sorted(scorers + conceders)  # the whole pitch, nobody else
+    for agent in scorers:
+        assert rows[agent][1] == pytest.approx(1.0, abs=0.01) and not rows[agent][2]
+    for agent in conceders:
+        assert rows[agent][1] == -1.0 and not rows[agent][2]
+
+
+def test_strikers_own_end_is_a_wall():
+    env = make("StrikersVsGoalie")
+    output = env.reset()
+    env.ball[0], env.ball_vel[0] = (-7.5, 0.0), (-10.0, 0.0)
+    for _ in range(5):
+        output = env.step(idle(env, output))
+        assert not any(infos.done.any() for infos in output.values())
+    assert env.ball_vel[0, 0] > 0  # bounced
+
+
+@pytest.mark.parametrize(("right", "reward"), [(True, 1.0), (False, -0.1)])
+def test_hallway_rewards_the_goal_matching_the_symbol(right, reward):
+    env = make("Hallway")
+    output = env.reset()
+    up_is_right = env.orange_up[0] != env.red[0]  # the +y goal has the symbol's colour
+    env.pos[0] = (5.0, 2.0 if up_is_right == right else -2.0)
+    (got, _, interrupted) = rows_of(step_until_done(env, output), [0], done=True)[0]
+    assert got == pytest.approx(reward, abs=0.01) and not interrupted
+
+
+def test_pyramids_switch_then_pyramid_gives_two():
+    env = make("Pyramids")
+    output = env.reset()
+    env.pos[0] = env.objects[0, 0]  # on the switch
+    output = env.step(idle(env, output))
+    assert env.switched[0] and output["Pyramids?team=0"].obs[3][0, 0] == 1.0
+    env.pos[0] = env.objects[0, 1]  # at the pyramid
+    (got, _, _) = rows_of(step_until_done(env, output), [0], done=True)[0]
+    assert got == pytest.approx(2.0, abs=0.01)
+
+
+def test_dungeon_escape_kill_key_door():
+    env = make("DungeonEscape")
+    output = env.reset()
+    env.pos[0] = env.things[0, 2]  # agent 0 walks into the dragon
+    output = step_until_done(env, output)
+    assert rows_of(output, [0, 1, 2], done=True).keys() == {0}
+    assert not env.alive[0] and env.things[0, 1, 0] < 100  # the key lies where the dragon was
+    while 0 in output["DungeonEscape?team=0"].agent_id[~output["DungeonEscape?team=0"].done]:
+        output = env.step(idle(env, output))
+    env.pos[1] = env.things[0, 1]  # agent 1 picks up the key ...
+    output = env.step(idle(env, output))
+    assert env.has_key[1]
+    env.pos[1] = (6.5, 0.0)  # ... and opens the door
+    done = rows_of(step_until_done(env, output), [0, 1, 2], done=True)
+    assert done.keys() == {1, 2}
+    assert all(group == 1.0 and not interrupted for _, group, interrupted in done.values())
+    while True:
+        output = env.step(idle(env, output))
+        infos = output["DungeonEscape?team=0"]
+        if (~infos.done).any():
+            break
+    group_one = infos.agent_id[~infos.done & (infos.group_id == 1)].tolist()
+    assert group_one == [36, 1, 2]  # the sacrificed agent is back as a new agent
