@@ -21,6 +21,8 @@ class Checkpoints:
         """``start``: each behavior's steps when the run (or its resumption) began."""
         self.directory = run_dir / "checkpoints"
         self.config = config
+        for stale in self.directory.glob("*/.*.tmp"):  # a save its process was killed in
+            stale.unlink(missing_ok=True)
         self.next_step = {
             behavior: next_multiple(steps, self._interval(behavior))
             for behavior, steps in start.items()

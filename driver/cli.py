@@ -12,7 +12,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 from driver.options import (
     CollectOptions,
@@ -24,6 +24,7 @@ from driver.options import (
 
 if TYPE_CHECKING:
     from driver.local_ray import BackgroundRay
+    from driver.run_dir import Plan
 
 Command = Callable[[argparse.Namespace], int]
 
@@ -63,8 +64,11 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
+    from driver.run_dir import plan
+
     try:
         options = from_arguments(TrainOptions, args)
+        planned = plan(options)  # the checks that need neither Ray nor torch
     except TrainingError as error:
         return _error(error)
     options = dataclasses.replace(options, progress=options.progress and sys.stdout.isatty())
@@ -75,42 +79,37 @@ def _cmd_train(args: argparse.Namespace) -> int:
     # Ray comes up while the imports below (torch and friends) load.
     starting = None if options.address else BackgroundRay(options.cpus, options.dashboard)
     try:
-        return _train(options, starting)
+        code, message = _train(options, starting, planned)
     finally:
         if starting is not None:
             starting.shutdown()
+    print(message, file=sys.stderr)  # after Ray's own lines: the last line says how it ended
+    return code
 
 
-def _train(options: TrainOptions, starting: BackgroundRay | None) -> int:
+def _train(options: TrainOptions, starting: BackgroundRay | None, planned: Plan) -> tuple[int, str]:
     import logging
-
-    from rich.console import Console
 
     from driver.train import train
     from rollout.service import RolloutError
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    console = Console(stderr=True)
     try:
-        result = train(options, starting)
+        result = train(options, starting, planned)
     except TrainingError as error:
-        console.print(f"[red]error:[/red] {error}", soft_wrap=True)
-        return 2
+        return 2, f"error: {error}"
     except RolloutError as error:
-        console.print(f"[red]error:[/red] {error} (a checkpoint was kept)", soft_wrap=True)
-        return 1
+        return 1, f"error: {error}"
     rewards = ", ".join(
         f"{name}: {v['mean_reward']:.3f}"
         for name, v in result.latest.items()
         if v.get("mean_reward") is not None
     )
     how = f"stopped by {'SIGINT/SIGTERM'}" if result.interrupted else "finished"
-    console.print(
+    return 0, (
         f"{how}: {sum(result.steps.values()):,} steps in {result.seconds:.0f}s, "
-        f"mean reward {rewards or '-'}; checkpoint {result.checkpoint}",
-        soft_wrap=True,
+        f"mean reward {rewards or '-'}; checkpoints in {result.checkpoint}"
     )
-    return 0
 
 
 def _loopback_only_ray() -> None:
@@ -201,8 +200,15 @@ def _cmd_unitysim(args: argparse.Namespace) -> int:
     return unitysim_main(args.unitysim_args)
 
 
+class _Parser(argparse.ArgumentParser):
+    """A command line it cannot parse is one line, as every other input error."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="unity-rollout",
         description="Distributed rollouts for Unity ML-Agents environments on Ray.",
     )

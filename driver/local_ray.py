@@ -127,6 +127,10 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
         "log_to_driver": False,
         "object_store_memory": object_store_bytes(_shm_free(), psutil.virtual_memory().total),
         "_system_config": {"worker_niceness": 0},
+        # Ray's own lines (a local instance started, token auth on, no SIGTERM handler off
+        # the main thread) say nothing a local run's user acts on, and would follow an
+        # error found meanwhile; with the dashboard, its address is worth the line
+        "logging_level": logging.INFO if dashboard else logging.ERROR,
     }
     if dashboard:
         ray.init(**options)

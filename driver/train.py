@@ -2,11 +2,11 @@
 them until every behavior reaches ``max_steps`` (or a time limit, or a signal).
 
 The data flow is the service's (see ``rollout/service.py``); this file adds what a run
-needs around it: the trainer config, the run directory (``<results>/<run id>/``, with
-``checkpoints/``, TensorBoard files per behavior, ``configuration.yaml`` and
-``summary.json``), checkpoints every ``checkpoint_interval`` steps and at the end,
-``--resume`` from the newest checkpoint with the step count intact, and SIGINT/SIGTERM:
-finish the current step, write a final checkpoint, stop every process.
+needs around it: the run directory opened (``driver/run_dir.py``), each behavior's
+checkpoints (``driver/checkpoints.py``) and summaries (``driver/summaries.py``), a dead
+learner brought back (``driver/learner_keeper.py``), ``--resume`` from the newest
+checkpoints with the step counts intact, and SIGINT/SIGTERM: finish the current step,
+write a final checkpoint, stop every process.
 """
 
 from __future__ import annotations
@@ -14,10 +14,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import signal
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,16 +24,15 @@ from types import FrameType
 from typing import Any
 
 import ray
-import yaml
 from ray.exceptions import RayActorError
 
 from driver.checkpoints import Checkpoints
 from driver.learner_keeper import LearnerKeeper
 from driver.local_ray import BackgroundRay, init_local_ray
 from driver.options import TrainingError, TrainOptions
+from driver.run_dir import Plan, open_run, plan
 from driver.startup import first_steps, startup_times
 from driver.summaries import Summaries
-from learners.config import ConfigError, config_for_env, load_config, parse_config
 from learners.devices import DeviceError, learner_device
 from learners.factory import policy_factory
 from learners.remote import learner_actor
@@ -49,7 +47,7 @@ from rollout.service import (
     ServiceConfig,
     last_line,
 )
-from rollout.unity import EngineSettings, UnityConfig, UnityError, resolve_build
+from rollout.unity import EngineSettings, UnityConfig
 
 log = logging.getLogger(__name__)
 
@@ -65,38 +63,8 @@ class TrainResult:
     latest: dict[str, dict[str, float | None]]
 
 
-def load_run_config(options: TrainOptions) -> RunConfig:
-    path = Path(options.config) if options.config else config_for_env(options.env)
-    try:
-        return load_config(path) if path else parse_config({}, "<defaults>")
-    except ConfigError as error:
-        raise TrainingError(str(error)) from None
-
-
-def prepare_run_dir(options: TrainOptions) -> tuple[Path, dict[str, Any] | None]:
-    """The run directory, and the checkpoint to resume from (None for a fresh run)."""
-    run_dir = Path(options.results_dir) / options.run_id
-    has_checkpoints = any((run_dir / "checkpoints").rglob("*.pt"))
-    if options.resume or (options.resume_if_exists and has_checkpoints):
-        if not has_checkpoints:
-            raise TrainingError(f"--resume: no checkpoint in {run_dir}/checkpoints to resume from")
-        from learners import checkpoint  # torch: only a resumed or saving driver loads it
-
-        return run_dir, checkpoint.load(run_dir)
-    if has_checkpoints and not options.force:
-        raise TrainingError(
-            f"{run_dir} already holds a run: pass --resume to continue it, --force to "
-            "overwrite it, or choose another --run-id"
-        )
-    return run_dir, None
-
-
 def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> UnityConfig:
     build = None if options.env == "editor" else options.env
-    try:
-        resolve_build(build)
-    except UnityError as error:
-        raise TrainingError(str(error)) from None
     engine_fields = {f.name for f in dataclasses.fields(EngineSettings)}
     engine = EngineSettings(**{k: v for k, v in config.engine.items() if k in engine_fields})
     return UnityConfig(
@@ -196,31 +164,16 @@ def stop_on_signals() -> Iterator[list[str]]:
             signal.signal(signum, old)
 
 
-def train(options: TrainOptions, starting: BackgroundRay | None = None) -> TrainResult:
+def train(
+    options: TrainOptions, starting: BackgroundRay | None = None, planned: Plan | None = None
+) -> TrainResult:
     """One training run. ``starting``: a local Ray the caller started in the background
-    (waited for once the options are checked, left to the caller to stop)."""
-    options.validate()
-    config = load_run_config(options)
-    run_dir, resume = prepare_run_dir(options)
+    (waited for once the run's directory is open, left to the caller to stop);
+    ``planned``: ``run_dir.plan(options)``, when the caller checked it before Ray."""
+    planned = planned or plan(options)
+    resume = open_run(planned)
+    config, run_dir = planned.config, planned.run_dir
     unity = unity_config(options, config, run_dir)
-    try:  # before Unity and the learner start: a run that cannot write would lose its checkpoints
-        run_dir.mkdir(parents=True, exist_ok=True)
-        probe = run_dir / ".write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as error:
-        raise TrainingError(
-            f"--results-dir: cannot write {run_dir} as uid {os.getuid()} ({error.strerror}); "
-            "choose a writable one, or make it writable for this uid (in Docker: mkdir it and "
-            "chown it to the uid the container runs as before mounting it)"
-        ) from None
-    for problem in config.unsupported:
-        log.warning("%s: not supported by unity-rollout, ignored", problem)
-    (run_dir / "configuration.yaml").write_text(
-        yaml.safe_dump(
-            {"options": dataclasses.asdict(options), "config": _plain(config)}, sort_keys=False
-        )
-    )
     started_ray = False
     if starting is not None:
         starting.wait()
@@ -276,12 +229,9 @@ def _run(
                 summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
                 if due := checkpoints.due(progress["steps"]):
                     checkpoints.save(ray.get(learner.state_dict.remote(due)), meta)
-            except RolloutError:  # keep what was learned, then report the cause
-                try:
-                    checkpoints.save(ray.get(keeper.learner.state_dict.remote()), meta)
-                except RayActorError:  # the learner is gone too: its last checkpoint stays
-                    log.warning("no final checkpoint: the learner died with the run")
-                raise
+            except RolloutError as error:  # keep what was learned, then report the cause
+                kept = _keep_what_was_learned(keeper, checkpoints, meta)
+                raise RolloutError(f"{error} ({kept})") from error
             except (LearnerDied, RayActorError) as error:  # only the learner's calls raise it
                 keeper.restore(service, _cause(error))
                 continue
@@ -329,17 +279,20 @@ def _run(
     return result
 
 
+def _keep_what_was_learned(
+    keeper: LearnerKeeper, checkpoints: Checkpoints, meta: dict[str, Any]
+) -> str:
+    """A last checkpoint of a failed run, when it learned anything; what a retry finds."""
+    try:
+        state = ray.get(keeper.learner.state_dict.remote())
+    except RayActorError:
+        return "the learner died with the run: its last checkpoint stays"
+    if not any(int(entry["steps"]) for entry in state["behaviors"].values()):
+        return "nothing was trained and no checkpoint written: the same command starts it anew"
+    checkpoints.save(state, meta)
+    return "a checkpoint was kept: --resume continues from it"
+
+
 def _cause(error: Exception) -> str:
     """Ray's last line without its paragraph of generic advice."""
     return last_line(error).split(" Some common causes")[0]
-
-
-def _plain(value: Any) -> Any:
-    """Dataclasses, mappings and sequences as plain YAML data (for configuration.yaml)."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, tuple | list):
-        return [_plain(v) for v in value]
-    return value

@@ -6,7 +6,7 @@ code. Behavior specs are stored as dicts (``spec_to_dict``), because ``BehaviorS
 class. Layout::
 
     {"format": 1, "step": int, "version": int, "meta": {...},
-     "behaviors": {behavior: {"spec": dict, "network_settings": dict,
+     "behaviors": {behavior: {"spec": dict, "trainer_type": str, "network_settings": dict,
                               "network": state_dict, "algorithm": dict,
                               "steps": int, "updates": [int]}}}
 

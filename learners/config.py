@@ -53,7 +53,6 @@ from learners.trainers import TRAINERS
 logger = logging.getLogger(__name__)
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
-UNITYSIM_PREFIX = "unitysim:"
 
 
 def defaults(trainer_type: str = "ppo") -> TrainerSettings:
@@ -321,9 +320,8 @@ def load_config(path: str | Path) -> RunConfig:
     return parse_config(data, source)
 
 
-def config_for_env(env: str) -> Path | None:
-    """The shipped config of ``unitysim:<Env>`` (or bare ``<Env>``), if ``config/`` has one."""
-    name = env.removeprefix(UNITYSIM_PREFIX)
+def config_for_env(name: str) -> Path | None:
+    """The shipped config of an environment (``3DBall``), if ``config/`` has one."""
     if not re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name):
         return None
     path = CONFIG_DIR / f"{name}.yaml"

@@ -191,6 +191,7 @@ class CentralLearner:
                 "behaviors": {
                     name: {
                         "spec": s.spec,
+                        "trainer_type": s.settings.trainer_type,
                         "network_settings": checkpoint.network_settings_dict(s.network.settings),
                         "network": s.network.state_dict(),
                         "algorithm": s.algorithm.state_dict(),

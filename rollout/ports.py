@@ -22,6 +22,7 @@ import random
 import socket
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -186,10 +187,15 @@ class PortAllocator:
                     continue
                 state["leases"][key] = {"pid": pid, "start": start, "bound": False, "at": now}
                 return port
+            taken = Counter(
+                next(t for t in ("leases", "quarantine", "foreign") if str(port) in state[t])
+                for port in candidates
+            )
             raise PortError(
-                f"no free port in {self.port_range}: {len(state['leases'])} leased, "
-                f"{len(state['quarantine'])} in quarantine, {len(state['foreign'])} held by other "
-                f"programs; widen it with {RANGE_VARIABLE}=START-END (for example 20000-29999)"
+                f"no free port in {self.port_range} ({len(candidates)} ports): "
+                f"{taken['leases']} leased, {taken['quarantine']} in quarantine, "
+                f"{taken['foreign']} held by other programs; widen it with "
+                f"{RANGE_VARIABLE}=START-END (for example 20000-29999)"
             )
 
     def lease_port(self, port: int, owner_pid: int | None = None) -> int:

@@ -26,7 +26,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mlagents_envs import env_utils
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps, TerminalSteps
 from mlagents_envs.communicator_objects.agent_action_pb2 import AgentActionProto
 from mlagents_envs.communicator_objects.command_pb2 import STEP
@@ -51,6 +50,7 @@ from mlagents_envs.side_channel.environment_parameters_channel import (
 )
 from mlagents_envs.side_channel.stats_side_channel import StatsSideChannel
 
+from rollout.builds import UnityError, resolve_build
 from rollout.communicator import LoopbackCommunicator
 from rollout.ports import PortAllocator
 from rollout.restarts import RestartBudget, RestartPolicy, RestartRefused
@@ -58,7 +58,6 @@ from unitysim.launcher import write_executable
 
 log = logging.getLogger(__name__)
 
-UNITYSIM_PREFIX = "unitysim:"
 EDITOR_PORT = UnityEnvironment.DEFAULT_EDITOR_PORT
 _PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -72,10 +71,6 @@ RECOVERABLE = (
     UnityWorkerInUseException,
     RuntimeError,
 )
-
-
-class UnityError(RuntimeError):
-    """A problem no restart can fix (bad build path, incompatible version, budget spent)."""
 
 
 class UnityStartError(UnityError):
@@ -106,37 +101,6 @@ class UnityConfig:
     additional_args: tuple[str, ...] = ()
     log_folder: str | None = None
     restarts: RestartPolicy = field(default_factory=RestartPolicy)
-
-
-# --- builds ---------------------------------------------------------------------------
-
-
-def unitysim_builds_dir() -> Path:
-    return Path(tempfile.gettempdir()) / f"unity-rollout-{os.getuid()}" / "unitysim-builds"
-
-
-def resolve_build(build: str | None) -> str | None:
-    """The executable to launch for ``build`` (None: editor mode), or a one-line error."""
-    if build is None:
-        return None
-    if build.startswith(UNITYSIM_PREFIX):
-        from unitysim.launcher import build as build_launchers
-
-        name = build[len(UNITYSIM_PREFIX) :]
-        try:
-            (launcher,) = build_launchers(unitysim_builds_dir(), [name])
-        except ValueError as error:
-            raise UnityError(str(error)) from None
-        return str(launcher)
-    executable = env_utils.validate_environment_path(build)
-    if executable is None:
-        raise UnityError(
-            f"no Unity build at {build!r}: expected an executable {build}.x86_64 (or the path "
-            f"of one), or use unitysim:<Env> for the headless stand-in"
-        )
-    if not os.access(executable, os.X_OK):
-        raise UnityError(f"Unity build {executable!r} is not executable: run chmod +x on it")
-    return executable
 
 
 def _guard_launcher(executable: str) -> str:
@@ -297,8 +261,12 @@ class UnityInstance:
         log.info("Unity %s on port %d (pid %s)", config.build, port, self.env.player_pid)
 
     def _log(self) -> str:
+        """Where the player's own log is, when it wrote one (a build that died first did not)."""
         folder = self.config.log_folder
-        return f"; its log: {folder}/Player-0.log" if folder and self.executable else ""
+        if not folder or not self.executable:
+            return ""
+        path = Path(folder) / "Player-0.log"
+        return f"; its log: {path}" if path.is_file() else "; it wrote no log"
 
     def close(self, failed: bool = False) -> None:
         """``failed``: the player crashed or hangs, so it gets no grace period to exit."""

@@ -117,10 +117,10 @@ def test_shipped_configs_load_cleanly(path: Path) -> None:
 
 def test_every_unitysim_env_has_a_config() -> None:
     for env in UNITYSIM_BEHAVIORS:
-        assert config_for_env(f"unitysim:{env}") == CONFIG_DIR / f"{env}.yaml"
+        assert config_for_env(env) == CONFIG_DIR / f"{env}.yaml"
     assert config_for_env("3DBall") == CONFIG_DIR / "3DBall.yaml"
-    assert config_for_env("unitysim:Echo") is None
-    assert config_for_env("unitysim:../pyproject") is None
+    assert config_for_env("Echo") is None
+    assert config_for_env("../pyproject") is None
     assert load_config(CONFIG_DIR / "3DBall_sac.yaml").for_behavior("3DBall").trainer_type == "sac"
     impala = load_config(CONFIG_DIR / "3DBall_impala.yaml").for_behavior("3DBall")
     assert impala.trainer_type == "impala"
@@ -128,7 +128,7 @@ def test_every_unitysim_env_has_a_config() -> None:
 
 
 def test_shipped_3dball_values() -> None:
-    ball = load_config(config_for_env("unitysim:3DBall")).for_behavior("3DBall?team=0")
+    ball = load_config(config_for_env("3DBall")).for_behavior("3DBall?team=0")
     h = ball.hyperparameters
     assert (h.batch_size, h.buffer_size, h.learning_rate, h.num_epoch) == (256, 2400, 1e-3, 3)
     assert (h.beta, h.epsilon, h.lambd, h.max_policy_lag) == (1e-3, 0.2, 0.95, 2)
