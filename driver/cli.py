@@ -134,8 +134,9 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from driver.counting_learner import CountingLearner
     from driver.local_ray import init_local_ray
     from learners.factory import actor_factory
+    from rollout.builds import UnityError, resolve_build
     from rollout.service import RolloutService, ServiceConfig
-    from rollout.unity import UnityConfig, UnityError, resolve_build
+    from rollout.unity import UnityConfig
 
     console = Console()
     build = None if options.env == "editor" else options.env

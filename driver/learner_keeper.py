@@ -51,6 +51,8 @@ class LearnerKeeper:
             source = ", ".join(Path(file).name for file in state["files"])
         except FileNotFoundError:  # died before the first checkpoint: start over
             source, state = "the start", ray.get(learner.state_dict.remote())
+        except checkpoint.CheckpointError as error:
+            raise RolloutError(f"the learner died ({cause}), and {error}") from None
         state = {**state, "version": max(int(state["version"]), service.version) + 1}
         ray.get(learner.load_state_dict.remote(state))
         service.replace_learner(learner)

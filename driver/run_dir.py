@@ -24,7 +24,7 @@ from learners.config import ConfigError, config_for_env, load_config, parse_conf
 from learners.factory import policy_factory
 from learners.settings import RunConfig
 from rollout.builds import UNITYSIM_PREFIX, UnityError, resolve_build
-from rollout.ports import RANGE_VARIABLE, PortError, PortRange
+from rollout.ports import RANGE_VARIABLE, REGISTRY_VARIABLE, PortError, PortRange
 
 log = logging.getLogger(__name__)
 SQUASHING = ("tanh_squash", "conditional_sigma")  # set by the trainer type, not config keys
@@ -54,6 +54,15 @@ def check_environment() -> None:
             PortRange.parse(text)
         except PortError as error:
             raise TrainingError(f"{RANGE_VARIABLE}: {error}") from None
+    if folder := os.environ.get(REGISTRY_VARIABLE):
+        try:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+            writable = os.access(folder, os.W_OK | os.X_OK)
+        except OSError as error:
+            problem = f"cannot create {folder} ({error.strerror})"
+            raise TrainingError(f"{REGISTRY_VARIABLE}: {problem}") from None
+        if not writable:
+            raise TrainingError(f"{REGISTRY_VARIABLE}: {folder} is not writable for this user")
 
 
 def plan(options: TrainOptions) -> Plan:

@@ -114,6 +114,12 @@ def test_a_bad_port_range_is_one_line_before_ray(fresh, value, fragment):
     assert message.startswith("error: UNITY_ROLLOUT_PORT_RANGE: ")
 
 
+def test_a_port_registry_that_cannot_be_written_is_one_line_before_ray(fresh):
+    (fresh / "a-file").write_text("")
+    fragment = "UNITY_ROLLOUT_RUNTIME_DIR: cannot create a-file/registry"
+    check_error(fresh, ["train"], 2, fragment, UNITY_ROLLOUT_RUNTIME_DIR="a-file/registry")
+
+
 @pytest.mark.parametrize("bad", ["missing.pt", "empty", "corrupt.pt"])
 def test_export_of_a_bad_source_names_it(fresh, bad):
     (fresh / "empty").mkdir()
