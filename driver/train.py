@@ -16,7 +16,7 @@ import json
 import logging
 import signal
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +26,7 @@ from typing import Any
 import ray
 from ray.exceptions import RayActorError
 
+from batches.contracts import base_name
 from driver.checkpoints import Checkpoints
 from driver.learner_keeper import LearnerKeeper
 from driver.local_ray import BackgroundRay, init_local_ray
@@ -210,6 +211,7 @@ def _run(
     started = time.perf_counter()
     deadline = started + options.max_seconds if options.max_seconds else None
     meta = {"env": options.env, "run_id": options.run_id}
+    unconfigured = UnconfiguredBehaviors(config)
     progress: dict[str, Any] = {"steps": {}, "version": 0}
     with (
         stop_on_signals() as received,
@@ -226,6 +228,7 @@ def _run(
                 metrics = service.run(seconds=0.5, report_every=0.5)
                 learner = keeper.learner
                 progress = ray.get(learner.progress.remote())
+                unconfigured.report(progress["steps"])
                 summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
                 if due := checkpoints.due(progress["steps"]):
                     checkpoints.save(ray.get(learner.state_dict.remote(due)), meta)
@@ -277,6 +280,24 @@ def _run(
         )
     )
     return result
+
+
+class UnconfiguredBehaviors:
+    """Says, once, of each behavior the config does not name that it trains with the
+    default settings, in mlagents-learn's words."""
+
+    def __init__(self, config: RunConfig) -> None:
+        self.config, self.seen = config, set[str]()
+
+    def report(self, behaviors: Iterable[str]) -> None:
+        for name in {base_name(b) for b in behaviors} - self.seen:
+            self.seen.add(name)
+            if name not in self.config.behaviors:
+                log.warning(
+                    "Behavior name %s does not match any behaviors specified in the trainer "
+                    "configuration file. A default configuration will be used.",
+                    name,
+                )
 
 
 def _keep_what_was_learned(

@@ -131,7 +131,7 @@ TOP: dict[str, Check] = {
 }
 TOP_UNSUPPORTED: dict[str, object] = {
     "init_path": None,
-    "threaded": ALWAYS,
+    "threaded": False,  # workers wait for each update's weights, as unthreaded ML-Agents
     "self_play": None,
     "behavioral_cloning": None,
     "even_checkpoints": False,

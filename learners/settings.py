@@ -51,6 +51,7 @@ class Hyperparameters:
     tau: float = 0.005
     steps_per_update: float = 1.0
     init_entcoef: float = 1.0
+    reward_signal_steps_per_update: float | None = None  # None: steps_per_update
     # our extensions, not ML-Agents keys:
     max_policy_lag: int = 2  # PPO: rows acted by weights > this many versions old are dropped
     vtrace_rho_clip: float = 1.0  # IMPALA V-trace rho-bar

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from learners.config_keys import (
-    ALWAYS,
     ON_POLICY,
     POSITIVE,
     SHARED,
@@ -75,8 +74,11 @@ TRAINERS: Mapping[str, TrainerType] = {
                 "tau": float_in(0, 1, open_low=True),
                 "steps_per_update": POSITIVE,
                 "init_entcoef": POSITIVE,
+                # how often reward signals with networks of their own update: the extrinsic
+                # signal, the only one we have, has none (as in ML-Agents)
+                "reward_signal_steps_per_update": POSITIVE,
             },
-            {"save_replay_buffer": False, "reward_signal_steps_per_update": ALWAYS},
+            {"save_replay_buffer": False},
             Hyperparameters(batch_size=128, buffer_size=50_000, learning_rate_schedule="constant"),
             squashed=True,
         ),

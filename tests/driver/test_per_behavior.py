@@ -1,6 +1,7 @@
 """Per-behavior keys stay per behavior: each behavior checkpoints at its own interval and
 keeps its own count, and cuts its rows at its own time horizon (as ML-Agents'
-trainers do), and a run resumes each behavior from its newest readable file."""
+trainers do), and a run resumes each behavior from its newest readable file. A behavior
+the config does not name is said to train with the defaults."""
 
 from __future__ import annotations
 
@@ -100,3 +101,17 @@ def test_the_service_cuts_each_behaviors_rows_at_its_own_time_horizon():
     settings = service_config(TrainOptions(), parse_config(TWO), UnityConfig(None), False)
     assert settings.horizon == Horizons(64, {"Striker": 16, "Goalie": 40})
     assert settings.horizon(NAMES["Goalie"]) == 40 and settings.horizon("Other") == 64
+
+
+def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
+    from driver.train import UnconfiguredBehaviors
+
+    reporter = UnconfiguredBehaviors(parse_config(TWO))
+    with caplog.at_level(logging.WARNING):
+        reporter.report([NAMES["Striker"], "3DBallHard?team=0"])
+        reporter.report(["3DBallHard?team=0", NAMES["Goalie"]])
+    said = [r.getMessage() for r in caplog.records]
+    assert said == [
+        "Behavior name 3DBallHard does not match any behaviors specified in the trainer "
+        "configuration file. A default configuration will be used."
+    ]

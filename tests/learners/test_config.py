@@ -160,10 +160,8 @@ def test_mlagents_sac_3dball() -> None:
     assert (ball.trainer_type, h.batch_size, h.buffer_size) == ("sac", 64, 200_000)
     assert (h.tau, h.steps_per_update, h.init_entcoef) == (0.005, 10.0, 0.5)
     assert h.learning_rate_schedule == "constant"
-    assert config.unsupported == (
-        "behaviors.3DBall.threaded",
-        "behaviors.3DBall.hyperparameters.reward_signal_steps_per_update",
-    )
+    assert h.reward_signal_steps_per_update == 10.0  # no reward signal network to update
+    assert config.unsupported == ("behaviors.3DBall.threaded",)  # true: ours is false
 
 
 def test_defaults_follow_mlagents() -> None:
