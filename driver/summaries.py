@@ -5,8 +5,11 @@ update reports and never touches segment data.
 Tags (docs/training.md lists them all): ``Environment/Cumulative Reward`` and
 ``Environment/Episode Length`` (episodes finished since the last summary),
 ``Losses/*`` and ``Policy/*`` (means over the updates since the last summary),
-``Health/*`` (Unity restarts, dropped steps, policy lag) and ``Perf/*`` (agent steps per
-second collected, samples per second consumed by the learner). One writer per behavior,
+``Health/*`` (Unity restarts, dropped steps, policy lag), ``Perf/*`` (agent steps per
+second collected, samples per second consumed by the learner), and Unity's custom
+statistics (``StatsRecorder``) under their own names in every behavior's folder, as
+mlagents-learn writes them (``rollout.service_metrics.Stat``; histograms also as
+``<name>_hist``). One writer per behavior,
 in ``<run dir>/<behavior>/``, as ML-Agents lays them out, so TensorBoard shows one run per
 behavior. Without the live display (``--no-progress``, or output that is not a terminal)
 each summary is also one line on the console, in mlagents-learn's words.
@@ -15,19 +18,20 @@ each summary is also one line on the console, in mlagents-learn's words.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 from tensorboard.compat.proto.event_pb2 import Event
-from tensorboard.compat.proto.summary_pb2 import Summary
+from tensorboard.compat.proto.summary_pb2 import HistogramProto, Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
-from rollout.service_metrics import ServiceMetrics
+from rollout.service_metrics import ServiceMetrics, Stat, merge_stats
 
 _RATE_TAGS = {
     "collect": "Perf/Agent Steps per Second",
@@ -46,6 +50,21 @@ class ScalarWriter:
 
     def add_scalar(self, tag: str, value: float, step: int) -> None:
         summary = Summary(value=[Summary.Value(tag=tag, simple_value=float(value))])
+        self._events.add_event(Event(wall_time=time.time(), step=int(step), summary=summary))
+
+    def add_histogram(self, tag: str, values: Sequence[float], step: int, bins: int = 30) -> None:
+        data = np.asarray(values, dtype=np.float64)
+        counts, edges = np.histogram(data, bins=bins)
+        histogram = HistogramProto(
+            min=float(data.min()),
+            max=float(data.max()),
+            num=float(data.size),
+            sum=float(data.sum()),
+            sum_squares=float(np.square(data).sum()),
+            bucket_limit=edges[1:].tolist(),
+            bucket=counts.astype(np.float64).tolist(),
+        )
+        summary = Summary(value=[Summary.Value(tag=tag, histo=histogram)])
         self._events.add_event(Event(wall_time=time.time(), step=int(step), summary=summary))
 
     def flush(self) -> None:
@@ -70,6 +89,7 @@ class _Window:
     return_sum: float = 0.0
     length_sum: int = 0
     losses: dict[str, list[float]] = field(default_factory=dict)
+    unity_stats: dict[str, Stat] = field(default_factory=dict)  # since the last summary
     last_reward: float | None = None
     last_length: float | None = None
 
@@ -135,9 +155,11 @@ class Summaries:
             window = self._window(behavior, progress["steps"].get(behavior, 0))
             for key, value in report.items():
                 window.losses.setdefault(key, []).append(value)
+        unity_stats = metrics.drain_unity_stats()
         totals = metrics.episode_totals()
         for behavior, step in progress["steps"].items():
             window = self._window(behavior, step)
+            merge_stats(window.unity_stats, unity_stats)
             if step >= window.next_step:
                 self._write(behavior, step, window, totals.get(behavior), metrics)
                 window.next_step = next_multiple(step, self.summary_freq(behavior))
@@ -193,6 +215,11 @@ class Summaries:
         for key, values in window.losses.items():
             writer.add_scalar(key, sum(values) / len(values), step)
         window.losses = {}
+        for key, stat in window.unity_stats.items():
+            writer.add_scalar(key, stat.value, step)
+            if stat.values:
+                writer.add_histogram(f"{key}_hist", stat.values, step)
+        window.unity_stats = {}
         writer.add_scalar("Health/Unity Restarts", metrics.unity_restarts, step)
         writer.add_scalar("Health/Worker Restarts", metrics.worker_restarts, step)
         writer.add_scalar("Health/Learner Restarts", metrics.learner_restarts, step)

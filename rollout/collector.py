@@ -59,6 +59,7 @@ class CollectorMetrics:
     dropped_steps: int = 0
     policy_version: int = 0
     behaviors: dict[str, BehaviorStats] = field(default_factory=dict)
+    # Unity's custom statistics since the last snapshot: (value, StatsAggregationMethod)
     unity_stats: dict[str, list[tuple[float, int]]] = field(default_factory=dict)
     seconds: float = 0.0
     first_step_at: float | None = None  # wall clock (time.time) of Unity's first answer
@@ -225,7 +226,8 @@ class Collector:
     # --- metrics ------------------------------------------------------------------------
 
     def snapshot(self) -> CollectorMetrics:
-        """Metrics so far; episode results and Unity stats are drained into them."""
+        """Metrics so far, episode results drained into them, with the custom statistics
+        Unity sent since the last snapshot (never kept here: they would grow all run)."""
         metrics = self.metrics
         metrics.agent_steps = sum(b.counters.steps for b in self.builders.values())
         for behavior, builder in self.builders.items():
@@ -237,7 +239,5 @@ class Collector:
             stats.agent_steps = builder.counters.steps
             stats.rows = builder.counters.rows
             stats.dropped_steps = builder.counters.dropped_steps
-        if self.unity.env is not None:
-            for key, values in self.unity.drain_stats().items():
-                metrics.unity_stats.setdefault(key, []).extend(values)
-        return metrics
+        stats = self.unity.drain_stats() if self.unity.env is not None else {}
+        return dataclasses.replace(metrics, unity_stats=stats)  # each report: new ones only

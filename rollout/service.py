@@ -37,7 +37,7 @@ from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, step
 from rollout.membership import Membership
 from rollout.segments import Horizons
 from rollout.service_config import LearnerDied, RolloutError, ServiceConfig, last_line
-from rollout.service_metrics import ServiceMetrics, WorkerReports
+from rollout.service_metrics import ServiceMetrics, WorkerReports, merge_stats
 from rollout.supervision import WorkerSupervision
 from rollout.worker import RolloutWorker
 
@@ -355,6 +355,7 @@ class RolloutService(WorkerSupervision):
         live = set(self.live())
         workers = [w if i in live else None for i, w in enumerate(self.workers)]
         self.metrics.take(self._reports.poll(workers, wait_s))
+        merge_stats(self.metrics.unity_stats, self._reports.drain_stats())
         self.metrics.dropped_by_reason = self.ledger.dropped_by_reason()
         self.metrics.seconds = time.perf_counter() - self._started
         return self.metrics

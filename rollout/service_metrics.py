@@ -9,11 +9,58 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import ray
+from mlagents_envs.side_channel.stats_side_channel import StatsAggregationMethod
 from ray.exceptions import RayActorError
 
 from batches import keys
 from rollout.collector import CollectorMetrics
 from rollout.ledger import SHUTDOWN
+
+HISTOGRAM_KEEP = 10_000  # values of one histogram statistic kept per summary period
+
+
+@dataclass
+class Stat:
+    """One of Unity's custom statistics (``StatsRecorder``) over a summary period,
+    aggregated as mlagents-learn does: SUM summed, MOST_RECENT the newest (worker 0's
+    only), AVERAGE and HISTOGRAM averaged, HISTOGRAM's values kept for its histogram.
+    Constant in size whatever the period's length."""
+
+    method: StatsAggregationMethod
+    count: int = 0
+    total: float = 0.0
+    last: float = 0.0
+    values: list[float] = field(default_factory=list)
+
+    def add(self, value: float) -> None:
+        self.count += 1
+        self.total += value
+        self.last = value
+        if self.method == StatsAggregationMethod.HISTOGRAM and len(self.values) < HISTOGRAM_KEEP:
+            self.values.append(value)
+
+    def merge(self, other: Stat) -> None:
+        self.count += other.count
+        self.total += other.total
+        self.last = other.last
+        self.values.extend(other.values[: HISTOGRAM_KEEP - len(self.values)])
+
+    @property
+    def value(self) -> float:
+        if self.method == StatsAggregationMethod.SUM:
+            return self.total
+        if self.method == StatsAggregationMethod.MOST_RECENT:
+            return self.last
+        return self.total / max(self.count, 1)
+
+
+def merge_stats(into: dict[str, Stat], new: dict[str, Stat]) -> None:
+    for key, stat in new.items():
+        if key in into:
+            into[key].merge(stat)
+        else:
+            into[key] = Stat(stat.method)
+            into[key].merge(stat)
 
 
 @dataclass
@@ -31,6 +78,12 @@ class ServiceMetrics:
     policy_lag_count: int = 0
     seconds: float = 0.0
     workers: list[CollectorMetrics] = field(default_factory=list)
+    unity_stats: dict[str, Stat] = field(default_factory=dict)  # since the last drain
+
+    def drain_unity_stats(self) -> dict[str, Stat]:
+        """Unity's custom statistics since the last call (the summaries take them)."""
+        stats, self.unity_stats = self.unity_stats, {}
+        return stats
 
     def take(self, workers: list[CollectorMetrics]) -> None:
         """Totals over the workers' reports (restarted workers' included)."""
@@ -96,6 +149,7 @@ class WorkerReports:
         self.calls: dict[int, ray.ObjectRef] = {}  # worker index -> its metrics call
         self._reported: dict[int, CollectorMetrics] = {}  # worker index -> its last report
         self._retired: list[CollectorMetrics] = []  # last reports of restarted workers
+        self.unity_stats: dict[str, Stat] = {}  # reported since the service last took them
 
     def poll(self, workers: list[Any], wait_s: float) -> list[CollectorMetrics]:
         for index, worker in enumerate(workers):
@@ -112,4 +166,19 @@ class WorkerReports:
                     if last is not None and last.incarnation != report.incarnation:
                         self._retired.append(last)
                     self._reported[index] = report
+                    self._take_stats(index, report.unity_stats)
         return self._retired + [self._reported[i] for i in sorted(self._reported)]
+
+    def _take_stats(self, index: int, reported: dict[str, list[tuple[float, int]]]) -> None:
+        """A report's statistics (each report carries those since its worker's last one);
+        MOST_RECENT from worker 0 alone, as mlagents-learn takes it from its first env."""
+        for key, values in reported.items():
+            for value, code in values:
+                method = StatsAggregationMethod(code)
+                if method == StatsAggregationMethod.MOST_RECENT and index != 0:
+                    continue
+                self.unity_stats.setdefault(key, Stat(method)).add(value)
+
+    def drain_stats(self) -> dict[str, Stat]:
+        stats, self.unity_stats = self.unity_stats, {}
+        return stats

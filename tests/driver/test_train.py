@@ -196,65 +196,6 @@ def test_workers_auto_fills_the_cluster(ray_session, tmp_path):
     assert set(summary["ledger"]["workers"]) == {"0", "1"} and summary["ledger"]["balanced"]
 
 
-def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
-    from driver.summaries import Summaries
-    from learners.config import parse_config
-    from learners.learner import LearnerStats
-    from rollout.service_metrics import ServiceMetrics
-
-    config = parse_config({"behaviors": {"A": {"summary_freq": 100}, "B": {"summary_freq": 250}}})
-    written: list[tuple[str, int]] = []
-    with Summaries(
-        tmp_path, lambda b: config.for_behavior(b).summary_freq, progress=False
-    ) as summaries:
-        summaries._write = lambda behavior, step, *rest: written.append((behavior, step))
-        for step in range(0, 601, 50):
-            progress = {
-                "steps": {"A?team=0": step, "B?team=0": step},
-                "version": 0,
-                "stats": LearnerStats(),
-            }
-            summaries.observe(ServiceMetrics(), progress, [])
-    assert [s for b, s in written if b == "A?team=0"] == [100, 200, 300, 400, 500, 600]
-    assert [s for b, s in written if b == "B?team=0"] == [250, 500]
-
-
-def test_a_run_whose_first_look_comes_late_still_writes_its_first_summary(tmp_path):
-    """A resumed run at step 1,000 seen first at 1,350 (a fast run, a slow first look) is
-    past its first boundary (1,100): that summary is written at once, not skipped."""
-    from driver.summaries import Summaries
-    from learners.learner import LearnerStats
-    from rollout.service_metrics import ServiceMetrics
-
-    written: list[int] = []
-    start = {"A?team=0": 1000}
-    with Summaries(tmp_path, lambda b: 100, progress=False, start_steps=start) as summaries:
-        summaries._write = lambda behavior, step, *rest: written.append(step)
-        for step in (1350, 1390, 1420):
-            progress = {"steps": {"A?team=0": step}, "version": 0, "stats": LearnerStats()}
-            summaries.observe(ServiceMetrics(), progress, [])
-    assert written == [1350, 1420]
-
-
-def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
-    """As mlagents-learn: without a TTY every summary prints a line, with the step."""
-    import io
-
-    from rich.console import Console
-
-    from driver.summaries import Summaries
-    from learners.learner import LearnerStats
-    from rollout.service_metrics import ServiceMetrics
-
-    out = io.StringIO()
-    console = Console(file=out, width=200)
-    with Summaries(tmp_path, lambda b: 100, progress=False, console=console) as summaries:
-        progress = {"steps": {"A?team=0": 150}, "version": 0, "stats": LearnerStats()}
-        summaries.observe(ServiceMetrics(), progress, [])
-    assert "A?team=0. Step: 150. Time Elapsed: " in out.getvalue()
-    assert "No episode was completed since last summary." in out.getvalue()
-
-
 def test_engine_settings_reach_the_unity_config(tmp_path):
     from driver.train import unity_config
     from learners.config import parse_config

@@ -1,5 +1,6 @@
 """Rollout workers on real Ray over unitysim's environments: agents that come and go,
-switch behaviors, two behaviors, masks and hybrid actions, and the players' priority."""
+switch behaviors, two behaviors, masks and hybrid actions, the players' priority, and Unity's
+custom statistics on their way to the driver."""
 
 from __future__ import annotations
 
@@ -10,8 +11,13 @@ import pytest
 import torch
 
 from batches import keys
+from driver.counting_learner import CountingLearner
+from learners.factory import actor_factory
+from rollout.service import RolloutService
+from rollout.service_metrics import StatsAggregationMethod
+from rollout.unity import UnityConfig
 from tests.helpers import trajectories
-from tests.rollout.workers import collect, start_worker, stop_worker
+from tests.rollout.workers import collect, service_config, start_worker, stop_worker
 
 pytestmark = pytest.mark.integration
 
@@ -109,3 +115,15 @@ def test_grid_food_collector_hybrid_actions(ray_session, registry):
     assert segment[keys.ACTION, keys.DISCRETE].shape[-1] == 1
     assert segment[keys.OBS, "GridSensor-OneHot"].shape[-3:] == (5, 40, 40)
     assert segment[keys.ACTION_MASK].shape[-1] == 2
+
+
+def test_unity_stats_reach_the_service(ray_session, registry):
+    """unitysim's Echo records two statistics per step through the stats side channel."""
+    learner = ray_session.remote(CountingLearner).remote()
+    config = service_config(UnityConfig("unitysim:Echo"), registry, workers=2)
+    with RolloutService(config, actor_factory, learner) as service:
+        service.run(agent_steps=2000)
+        stats = service.metrics.drain_unity_stats()
+    assert stats["Echo/Episodes Ended"].method == StatsAggregationMethod.SUM
+    assert stats["Echo/Episodes Ended"].value > 0
+    assert stats["Echo/Agents Alive"].method == StatsAggregationMethod.MOST_RECENT

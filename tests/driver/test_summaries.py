@@ -1,0 +1,101 @@
+"""What a run reports: each behavior's summaries at its own summary_freq, and Unity's custom
+statistics in TensorBoard as mlagents-learn aggregates them."""
+
+from __future__ import annotations
+
+import io
+
+from rich.console import Console
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from driver.summaries import Summaries
+from learners.config import parse_config
+from learners.counters import LearnerStats
+from rollout.service_metrics import ServiceMetrics, Stat, WorkerReports, merge_stats
+from rollout.service_metrics import StatsAggregationMethod as Method  # after rollout's compat
+
+
+def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
+    config = parse_config({"behaviors": {"A": {"summary_freq": 100}, "B": {"summary_freq": 250}}})
+    written: list[tuple[str, int]] = []
+    with Summaries(
+        tmp_path, lambda b: config.for_behavior(b).summary_freq, progress=False
+    ) as summaries:
+        summaries._write = lambda behavior, step, *rest: written.append((behavior, step))
+        for step in range(0, 601, 50):
+            progress = {
+                "steps": {"A?team=0": step, "B?team=0": step},
+                "version": 0,
+                "stats": LearnerStats(),
+            }
+            summaries.observe(ServiceMetrics(), progress, [])
+    assert [s for b, s in written if b == "A?team=0"] == [100, 200, 300, 400, 500, 600]
+    assert [s for b, s in written if b == "B?team=0"] == [250, 500]
+
+
+def test_a_run_whose_first_look_comes_late_still_writes_its_first_summary(tmp_path):
+    """A resumed run at step 1,000 seen first at 1,350 (a fast run, a slow first look) is
+    past its first boundary (1,100): that summary is written at once, not skipped."""
+    written: list[int] = []
+    start = {"A?team=0": 1000}
+    with Summaries(tmp_path, lambda b: 100, progress=False, start_steps=start) as summaries:
+        summaries._write = lambda behavior, step, *rest: written.append(step)
+        for step in (1350, 1390, 1420):
+            progress = {"steps": {"A?team=0": step}, "version": 0, "stats": LearnerStats()}
+            summaries.observe(ServiceMetrics(), progress, [])
+    assert written == [1350, 1420]
+
+
+def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
+    """As mlagents-learn: without a TTY every summary prints a line, with the step."""
+
+    out = io.StringIO()
+    console = Console(file=out, width=200)
+    with Summaries(tmp_path, lambda b: 100, progress=False, console=console) as summaries:
+        progress = {"steps": {"A?team=0": 150}, "version": 0, "stats": LearnerStats()}
+        summaries.observe(ServiceMetrics(), progress, [])
+    assert "A?team=0. Step: 150. Time Elapsed: " in out.getvalue()
+    assert "No episode was completed since last summary." in out.getvalue()
+
+
+def test_stats_aggregate_as_mlagents_learn_does():
+    stats = WorkerReports()
+    for worker in (0, 1):
+        stats._take_stats(
+            worker,
+            {
+                "Sum": [(1.0, Method.SUM.value), (2.0, Method.SUM.value)],
+                "Mean": [(float(worker), Method.AVERAGE.value)],
+                "Latest": [(5.0 + worker, Method.MOST_RECENT.value)],
+                "Hist": [(float(worker), Method.HISTOGRAM.value)],
+            },
+        )
+    taken = stats.drain_stats()
+    assert {k: v.value for k, v in taken.items()} == {
+        "Sum": 6.0,
+        "Mean": 0.5,
+        "Latest": 5.0,  # worker 0's only
+        "Hist": 0.5,
+    }
+    assert taken["Hist"].values == [0.0, 1.0] and stats.drain_stats() == {}
+    window: dict[str, Stat] = {}
+    merge_stats(window, taken)
+    merge_stats(window, {"Sum": taken["Sum"]})
+    assert window["Sum"].value == 12.0 and window["Sum"] is not taken["Sum"]
+
+
+def test_custom_stats_reach_every_behaviors_tensorboard(tmp_path):
+    metrics = ServiceMetrics()
+    with Summaries(tmp_path, lambda b: 100, progress=False) as summaries:
+        for step, goals in ((60, 1.0), (120, 2.0), (180, 4.0), (240, 8.0)):
+            merge_stats(metrics.unity_stats, {"Environment/Goals": Stat(Method.SUM)})
+            metrics.unity_stats["Environment/Goals"].add(goals)
+            metrics.unity_stats.setdefault("Spread", Stat(Method.HISTOGRAM)).add(goals)
+            steps = {"Striker?team=0": step, "Goalie?team=1": step}
+            summaries.observe(metrics, {"steps": steps, "version": 0, "stats": LearnerStats()}, [])
+    for folder in ("Striker_team0", "Goalie_team1"):
+        events = EventAccumulator(str(tmp_path / folder), size_guidance={"histograms": 0})
+        events.Reload()
+        goals = [(e.step, e.value) for e in events.Scalars("Environment/Goals")]
+        assert goals == [(120, 3.0), (240, 12.0)]  # summed over each summary period
+        assert [h.step for h in events.Histograms("Spread_hist")] == [120, 240]
