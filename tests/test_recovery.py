@@ -21,7 +21,7 @@ import pytest
 import yaml
 
 from driver.options import TrainOptions
-from driver.train import prepare_run_dir
+from driver.run_dir import plan
 from learners import checkpoint
 from learners.config import CONFIG_DIR
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
@@ -102,7 +102,8 @@ def test_a_sigkilled_driver_resumes_with_steps_version_and_optimizer(tmp_path):
 
 def test_resume_if_exists_starts_a_run_that_has_no_checkpoint(tmp_path):
     options = TrainOptions(results_dir=str(tmp_path), run_id="new", resume_if_exists=True)
-    assert prepare_run_dir(options) == (tmp_path / "new", None)
+    planned = plan(options)
+    assert (planned.run_dir, planned.resume) == (tmp_path / "new", False)
 
 
 @pytest.mark.integration

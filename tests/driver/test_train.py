@@ -206,7 +206,8 @@ def test_engine_settings_reach_the_unity_config(tmp_path):
 
 
 def test_restart_limits_and_timeout_reach_every_unity_instance(tmp_path):
-    from driver.train import load_run_config, unity_config
+    from driver.run_dir import load_run_config
+    from driver.train import unity_config
     from rollout.restarts import RestartPolicy
 
     options = TrainOptions(env="unitysim:Basic", restarts_rate_limit_n=3, timeout_wait=7)
