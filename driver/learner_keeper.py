@@ -20,6 +20,14 @@ from rollout.service import RolloutError, RolloutService
 log = logging.getLogger(__name__)
 
 
+def load_into(learner: Any, state: dict[str, Any]) -> None:
+    """A learner actor takes a checkpoint's state once it is built: its argument's tensors
+    unpickled while the actor's build thread still imports torch failed in Ray with
+    ``RaySystemError: 'torch'`` (a restored learner, seen once in a suite run)."""
+    ray.get(learner.prepare.remote())
+    ray.get(learner.load_state_dict.remote(state))
+
+
 class LearnerKeeper:
     """Holds the run's learner actor and restores it when it dies."""
 
@@ -54,7 +62,7 @@ class LearnerKeeper:
         except checkpoint.CheckpointError as error:
             raise RolloutError(f"the learner died ({cause}), and {error}") from None
         state = {**state, "version": max(int(state["version"]), service.version) + 1}
-        ray.get(learner.load_state_dict.remote(state))
+        load_into(learner, state)
         service.replace_learner(learner)
         self.learner = learner
         log.warning(

@@ -28,7 +28,7 @@ from ray.exceptions import RayActorError
 
 from batches.contracts import base_name
 from driver.checkpoints import Checkpoints
-from driver.learner_keeper import LearnerKeeper
+from driver.learner_keeper import LearnerKeeper, load_into
 from driver.local_ray import BackgroundRay, init_local_ray
 from driver.options import TrainingError, TrainOptions
 from driver.run_dir import Plan, open_run, plan
@@ -144,7 +144,7 @@ def build_system(
     """Learner actor (restored when resuming) and the service with its workers (not started)."""
     learner = start_learner(options, config, device)
     if resume is not None:
-        ray.get(learner.load_state_dict.remote(resume))
+        load_into(learner, resume)
     settings = service_config(options, config, unity, resume is not None)
     return RolloutService(settings, policy_factory(config, options.seed), learner), learner
 

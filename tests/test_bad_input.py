@@ -5,7 +5,9 @@ before Ray starts; the ones that need Ray, a checkpoint or a player come last.""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import os
 import shutil
 import subprocess
@@ -16,6 +18,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from driver import cli
 from tests.helpers import assert_run_gone
 
 pytestmark = pytest.mark.integration
@@ -47,9 +50,32 @@ def run(cwd: Path, *argv: str, env: dict[str, str] | None = None, timeout: float
     return f"{result.returncode}\n{result.stdout}{result.stderr}"
 
 
-def check_error(cwd: Path, argv: list[str], code: int, fragment: str, **env: str) -> str:
+def in_process(cwd: Path, *argv: str, env: dict[str, str] | None = None) -> str:
+    """``unity-rollout ARGV`` called in this process, for the mistakes found before Ray
+    starts (Ray's start fails the test): as ``run`` returns it, seconds sooner."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(cwd)
+        for name, value in (env or {}).items():
+            patch.setenv(name, value)
+        patch.setattr("driver.local_ray.BackgroundRay", no_ray)
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = cli.main(list(argv))
+            except SystemExit as exit:  # argparse's
+                code = exit.code
+    return f"{code}\n{out.getvalue()}{err.getvalue()}"
+
+
+def no_ray(*args: object, **kwargs: object) -> None:
+    raise AssertionError("Ray was started")
+
+
+def check_error(
+    cwd: Path, argv: list[str], code: int, fragment: str, before_ray: bool = False, **env: str
+) -> str:
     before = snapshot(cwd)
-    status, output = run(cwd, *argv, env=env).split("\n", 1)
+    status, output = (in_process if before_ray else run)(cwd, *argv, env=env).split("\n", 1)
     lines = [line for line in output.splitlines() if line.strip()]
     assert "Traceback" not in output, output[-3000:]
     assert int(status) == code, output[-3000:]
@@ -101,7 +127,7 @@ BEFORE_RAY = [
 
 @pytest.mark.parametrize(("argv", "fragment"), BEFORE_RAY, ids=lambda v: str(v)[:40])
 def test_a_bad_option_or_config_is_one_line_before_ray(fresh, argv, fragment):
-    check_error(fresh, ["train", *argv], 2, fragment)
+    check_error(fresh, ["train", *argv], 2, fragment, before_ray=True)
     assert not (fresh / "escape").exists() and not (fresh / "results").exists()
 
 
@@ -110,21 +136,24 @@ def test_a_bad_option_or_config_is_one_line_before_ray(fresh, argv, fragment):
     [("abc", "invalid port range 'abc'"), ("80-90", "invalid port range 80-90")],
 )
 def test_a_bad_port_range_is_one_line_before_ray(fresh, value, fragment):
-    message = check_error(fresh, ["train"], 2, fragment, UNITY_ROLLOUT_PORT_RANGE=value)
+    message = check_error(
+        fresh, ["train"], 2, fragment, before_ray=True, UNITY_ROLLOUT_PORT_RANGE=value
+    )
     assert message.startswith("error: UNITY_ROLLOUT_PORT_RANGE: ")
 
 
 def test_a_port_registry_that_cannot_be_written_is_one_line_before_ray(fresh):
     (fresh / "a-file").write_text("")
     fragment = "UNITY_ROLLOUT_RUNTIME_DIR: cannot create a-file/registry"
-    check_error(fresh, ["train"], 2, fragment, UNITY_ROLLOUT_RUNTIME_DIR="a-file/registry")
+    env = {"UNITY_ROLLOUT_RUNTIME_DIR": "a-file/registry"}
+    check_error(fresh, ["train"], 2, fragment, before_ray=True, **env)
 
 
 @pytest.mark.parametrize("bad", ["missing.pt", "empty", "corrupt.pt"])
 def test_export_of_a_bad_source_names_it(fresh, bad):
     (fresh / "empty").mkdir()
     (fresh / "corrupt.pt").write_bytes(b"PK\x03\x04 cut short")
-    check_error(fresh, ["export", bad], 2, bad)
+    check_error(fresh, ["export", bad], 2, bad, before_ray=True)
 
 
 # ---- with Ray, players and checkpoints ------------------------------------------------

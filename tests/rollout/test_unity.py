@@ -249,25 +249,34 @@ def test_editor_mode_leases_5004_and_plays(allocator):
             editor.wait()
 
 
+# mlagents passes ``-logFile <folder>/Player-0.log``; a player that got that far wrote it
+WRITES_ITS_LOG = 'while [ "$1" != -logFile ]; do shift; done; echo started > "$2"; '
+
+
 @pytest.mark.parametrize(
-    ("script", "message"),
+    ("script", "message", "log"),
     [
-        ("exit 0", "the player exited with code 0 before it connected"),
-        ("exec sleep 600", "did not connect within timeout_wait (2 s)"),
+        ("exit 0", "the player exited with code 0 before it connected", False),
+        (WRITES_ITS_LOG + "exit 0", "the player exited with code 0 before it connected", True),
+        ("exec sleep 600", "did not connect within timeout_wait (2 s)", False),
+        (WRITES_ITS_LOG + "exec sleep 600", "did not connect within timeout_wait (2 s)", True),
     ],
-    ids=["exits", "silent"],
+    ids=["exits", "exits-logged", "silent", "silent-logged"],
 )
 def test_a_build_that_never_connects_is_one_line_naming_its_log(
-    allocator, tmp_path, script, message
+    allocator, tmp_path, script, message, log
 ):
+    """The player's log is named when there is one, else the line says it wrote none."""
     build = tmp_path / "Game.x86_64"
     build.write_text(f"#!/bin/sh\n{script}\n")
     build.chmod(0o755)
+    (tmp_path / "logs").mkdir()
     config = UnityConfig(str(build), timeout_wait=2, log_folder=str(tmp_path / "logs"))
     with pytest.raises(UnityStartError) as error:
         UnityInstance(config, allocator).start()
     assert message in str(error.value) and "\n" not in str(error.value)
-    assert str(error.value).endswith(f"its log: {tmp_path}/logs/Player-0.log")
+    ending = f"its log: {tmp_path}/logs/Player-0.log" if log else "it wrote no log"
+    assert str(error.value).endswith(ending)
 
 
 def test_a_build_path_with_spaces_launches(allocator, tmp_path):
