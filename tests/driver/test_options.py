@@ -81,3 +81,16 @@ def test_validation_is_the_same_for_callers_of_train():
         TrainOptions(cpus=0).validate()
     with pytest.raises(TrainingError, match="--seconds: positive"):
         CollectOptions(seconds=-1).validate()
+
+
+def test_the_training_docs_list_every_option():
+    """docs/training.md's table is the one other place options are named: it may not lag."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs/training.md").read_text()
+    missing = [
+        name
+        for item in dataclasses.fields(TrainOptions)
+        if f"`{(name := item.metadata['option'].negative or flag(item.name))}`" not in text
+    ]
+    assert missing == []
