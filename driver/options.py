@@ -163,6 +163,12 @@ class TrainOptions:
         "updates (0: they wait for the new weights, as mlagents-learn's environments do)",
         check=at_least(0),
     )
+    no_graphics: bool = option(
+        False,
+        "start the build without graphics (Unity's -nographics): no display or GPU needed, "
+        "but cameras send blank frames; off: the config's engine_settings.no_graphics, else "
+        "off, as mlagents-learn",
+    )
     max_lifetime_restarts: int = option(
         _restarts.max_lifetime_restarts,
         "restarts of one Unity instance in the run, -1: no limit (as mlagents-learn)",

@@ -16,7 +16,7 @@ import json
 import logging
 import signal
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,7 +70,8 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
     engine = EngineSettings(**{k: v for k, v in config.engine.items() if k in engine_fields})
     return UnityConfig(
         build,
-        no_graphics=bool(config.engine.get("no_graphics", True)),  # the one not in EngineSettings
+        # the one engine setting a player takes as an argument, not through a side channel
+        no_graphics=options.no_graphics or bool(config.engine.get("no_graphics", False)),
         seed=options.seed,
         num_areas=options.num_areas,
         engine=engine,
@@ -211,7 +212,7 @@ def _run(
     started = time.perf_counter()
     deadline = started + options.max_seconds if options.max_seconds else None
     meta = {"env": options.env, "run_id": options.run_id}
-    unconfigured = UnconfiguredBehaviors(config)
+    notes = BehaviorNotes(config, unity.no_graphics)
     progress: dict[str, Any] = {"steps": {}, "version": 0}
     with (
         stop_on_signals() as received,
@@ -228,7 +229,7 @@ def _run(
                 metrics = service.run(seconds=0.5, report_every=0.5)
                 learner = keeper.learner
                 progress = ray.get(learner.progress.remote())
-                unconfigured.report(progress["steps"])
+                notes.report(metrics.specs)
                 summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
                 if due := checkpoints.due(progress["steps"]):
                     checkpoints.save(ray.get(learner.state_dict.remote(due)), meta)
@@ -282,21 +283,36 @@ def _run(
     return result
 
 
-class UnconfiguredBehaviors:
-    """Says, once, of each behavior the config does not name that it trains with the
-    default settings, in mlagents-learn's words."""
+class BehaviorNotes:
+    """Says, once per behavior, what its settings mean for it: the defaults, when the
+    config does not name it (in mlagents-learn's words); blank cameras, when the build
+    runs without graphics."""
 
-    def __init__(self, config: RunConfig) -> None:
-        self.config, self.seen = config, set[str]()
+    def __init__(self, config: RunConfig, no_graphics: bool) -> None:
+        self.config, self.no_graphics = config, no_graphics
+        self.seen, self.named = set[str](), set[str]()  # behaviors, and their config names
 
-    def report(self, behaviors: Iterable[str]) -> None:
-        for name in {base_name(b) for b in behaviors} - self.seen:
-            self.seen.add(name)
-            if name not in self.config.behaviors:
+    def report(self, specs: Mapping[str, dict[str, Any]]) -> None:
+        for behavior, spec in specs.items():
+            if behavior in self.seen:
+                continue
+            self.seen.add(behavior)
+            name = base_name(behavior)
+            if name not in self.config.behaviors and name not in self.named:
+                self.named.add(name)
                 log.warning(
                     "Behavior name %s does not match any behaviors specified in the trainer "
                     "configuration file. A default configuration will be used.",
                     name,
+                )
+            images = [o["name"] for o in spec["observations"] if len(o["shape"]) == 3]
+            if self.no_graphics and images:
+                log.warning(
+                    "%s observes images (%s) and the build runs without graphics "
+                    "(engine_settings.no_graphics or --no-graphics): its cameras send blank "
+                    "frames (grid sensors are not rendered and stay as they are)",
+                    behavior,
+                    ", ".join(images),
                 )
 
 

@@ -79,6 +79,7 @@ class ServiceMetrics:
     seconds: float = 0.0
     workers: list[CollectorMetrics] = field(default_factory=list)
     unity_stats: dict[str, Stat] = field(default_factory=dict)  # since the last drain
+    specs: dict[str, dict[str, Any]] = field(default_factory=dict)  # behaviors routed so far
 
     def drain_unity_stats(self) -> dict[str, Stat]:
         """Unity's custom statistics since the last call (the summaries take them)."""
@@ -97,6 +98,7 @@ class ServiceMetrics:
         """Segments routed while ``version`` is the newest: their count and policy lag."""
         for segment in segments:
             self.segments += 1
+            self.specs.setdefault(segment.behavior, segment.spec)
             lag = version - segment.data[keys.POLICY_VERSION]
             if lag.size:
                 self.policy_lag_max = max(self.policy_lag_max, int(lag.max()))

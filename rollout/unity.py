@@ -95,7 +95,7 @@ class UnityConfig:
     seed: int = 0
     num_areas: int = 1
     timeout_wait: int = 60
-    no_graphics: bool = True
+    no_graphics: bool = False  # Unity's -nographics (mlagents-learn's default: off)
     engine: EngineSettings = field(default_factory=EngineSettings)
     env_params: Mapping[str, float] = field(default_factory=dict)
     additional_args: tuple[str, ...] = ()

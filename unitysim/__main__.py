@@ -50,6 +50,7 @@ def _play(args: argparse.Namespace, port: int, watch_parent: bool) -> int:
         faults=Faults.from_arguments(args),
         watch_parent=watch_parent,
         client=args.grpc_client,
+        no_graphics=getattr(args, "nographics", False),
     )
     logging.getLogger("unitysim").info("unitysim %s starting: %s", args.env, sys.argv[1:])
     return Player(config).run()
@@ -107,7 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
     play = commands.add_parser("play", help="be a Unity build (launchers exec this)")
     player_options(play)
     play.add_argument("--mlagents-port", dest="port", type=int, help="the trainer's port")
-    play.add_argument("-nographics", action="store_true", help="ignored, as headless")
+    play.add_argument(
+        "-nographics",
+        action="store_true",
+        help="as a Unity player: nothing is rendered, so camera sensors send blank frames",
+    )
     play.add_argument("-batchmode", action="store_true", help="ignored, as headless")
     play.add_argument(
         "--no-parent-watch",

@@ -47,12 +47,15 @@ class PlayerConfig:
     faults: Faults = field(default_factory=Faults)
     watch_parent: bool = True
     client: str = "h2"
+    no_graphics: bool = False  # -nographics: cameras send blank frames, as Unity's do
 
 
 class Session:
     """One training session: the environment, its behaviors and the side channels."""
 
-    def __init__(self, env_class: type[SimEnv], seed: int, num_areas: int) -> None:
+    def __init__(
+        self, env_class: type[SimEnv], seed: int, num_areas: int, no_graphics: bool = False
+    ) -> None:
         self.parameters = Parameters()
         self.side_channels = SideChannels(self.parameters)
         self.env = env_class(np.random.default_rng(seed), num_areas, self.parameters)
@@ -60,10 +63,21 @@ class Session:
         self.announced: set[str] = set()
         self.seen: list[str] = []  # behaviors with a spec on the Python side, in order
         self.steps = 0
+        # per behavior, the cameras a player without graphics renders nothing into
+        self.blank = (
+            {
+                b.name: [i for i, sensor in enumerate(b.sensors) if sensor.rendered]
+                for b in env_class.behaviors
+            }
+            if no_graphics
+            else {}
+        )
 
     def output(self, result: Output) -> bytes:
         announce = []
         for name, infos in result.items():
+            for index in self.blank.get(name, ()):
+                infos.obs[index] = np.zeros_like(infos.obs[index])
             if len(infos) and name not in self.announced:
                 self.announced.add(name)
                 self.seen.append(name)
@@ -152,7 +166,9 @@ class Player:
             init.seed,
             init.num_areas,
         )
-        session = Session(self.env_class, init.seed or 0, init.num_areas or 1)
+        session = Session(
+            self.env_class, init.seed or 0, init.num_areas or 1, self.config.no_graphics
+        )
         reply = exchange(messages.status_message(200))  # U2: the first real input comes back
         while True:
             request = wire_input.read_input(reply, session.behaviors)

@@ -103,15 +103,35 @@ def test_the_service_cuts_each_behaviors_rows_at_its_own_time_horizon():
     assert settings.horizon(NAMES["Goalie"]) == 40 and settings.horizon("Other") == 64
 
 
-def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
-    from driver.train import UnconfiguredBehaviors
+def spec(*shapes: tuple[int, ...]) -> dict:
+    observations = [{"name": f"sensor{i}", "shape": list(shape)} for i, shape in enumerate(shapes)]
+    return {"observations": observations}
 
-    reporter = UnconfiguredBehaviors(parse_config(TWO))
+
+def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
+    from driver.train import BehaviorNotes
+
+    notes = BehaviorNotes(parse_config(TWO), no_graphics=False)
     with caplog.at_level(logging.WARNING):
-        reporter.report([NAMES["Striker"], "3DBallHard?team=0"])
-        reporter.report(["3DBallHard?team=0", NAMES["Goalie"]])
+        notes.report({NAMES["Striker"]: spec((8,)), "3DBallHard?team=0": spec((8,))})
+        notes.report({"3DBallHard?team=0": spec((8,)), "3DBallHard?team=1": spec((8,))})
     said = [r.getMessage() for r in caplog.records]
     assert said == [
         "Behavior name 3DBallHard does not match any behaviors specified in the trainer "
         "configuration file. A default configuration will be used."
     ]
+
+
+def test_cameras_without_graphics_are_a_warning(caplog):
+    from driver.train import BehaviorNotes
+
+    with caplog.at_level(logging.WARNING):
+        BehaviorNotes(parse_config(TWO), no_graphics=False).report(
+            {"Striker?team=0": spec((3, 84, 84))}
+        )
+        assert caplog.records == []
+        BehaviorNotes(parse_config(TWO), no_graphics=True).report(
+            {"Striker?team=0": spec((3, 84, 84), (8,)), "Goalie?team=1": spec((8,))}
+        )
+    (said,) = [r.getMessage() for r in caplog.records]
+    assert said.startswith("Striker?team=0 observes images (sensor0) and the build runs without")

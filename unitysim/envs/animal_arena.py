@@ -89,7 +89,7 @@ class AnimalArena(ArenaEnv):
     behaviors = (
         Behavior(
             "AnimalArena?team=0",
-            (Sensor.visual("CameraSensor", 3, IMAGE, IMAGE), Sensor.vector("Velocity", 3)),
+            (Sensor.camera("CameraSensor", 3, IMAGE, IMAGE), Sensor.vector("Velocity", 3)),
             branches=(3, 3),
         ),
     )

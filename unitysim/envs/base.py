@@ -19,7 +19,7 @@ import functools
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import IntEnum
 from typing import ClassVar
 
@@ -50,6 +50,9 @@ class Sensor:
     dimension_properties: tuple[int, ...]
     observation_type: int = DEFAULT_OBS
     png: bool = False  # rank-3 sensors sent as concatenated RGB PNGs (camera/grid sensors)
+    # a camera: Unity renders it, so a player started with -nographics sends it blank
+    # (grid sensors are computed, not rendered)
+    rendered: bool = False
 
     @classmethod
     def vector(cls, name: str, size: int, observation_type: int = DEFAULT_OBS) -> Sensor:
@@ -57,9 +60,14 @@ class Sensor:
 
     @classmethod
     def visual(cls, name: str, channels: int, height: int, width: int, png: bool = True) -> Sensor:
+        """A grid sensor (computed, not rendered); ``camera`` for a rendered one."""
         return cls(
             name, (channels, height, width), (NONE_DIM, TRANSLATIONAL, TRANSLATIONAL), png=png
         )
+
+    @classmethod
+    def camera(cls, name: str, channels: int, height: int, width: int) -> Sensor:
+        return replace(cls.visual(name, channels, height, width), rendered=True)
 
 
 @dataclass(frozen=True)

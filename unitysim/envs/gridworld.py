@@ -54,7 +54,7 @@ class GridWorld(SimEnv):
         Behavior(
             "GridWorld?team=0",
             (
-                Sensor.visual("CameraSensor", 3, IMAGE, IMAGE),
+                Sensor.camera("CameraSensor", 3, IMAGE, IMAGE),
                 Sensor.vector("GoalSignal", 2, observation_type=GOAL_SIGNAL),
             ),
             branches=(5,),
