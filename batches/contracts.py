@@ -9,9 +9,10 @@ the worker's counts for the sample ledger) with ``submit``; it keeps at most a f
 submissions in flight, so a slow learner slows collection instead of growing a queue.
 ``submit`` returns the learner's newest weights version, and its demand: how many more
 steps it wants before its next on-policy update (None: any amount, as off-policy learners
-take). When the version is newer than what workers have, the service fetches ``weights()``
-once (one object per version) and passes it to every worker's next ``collect``; while the
-steps in flight cover the demand, it lets idle workers wait for those weights.
+take; 0: no more at all, the run has its steps). When the version is newer than what
+workers have, the service fetches ``weights()`` once (one object per version) and passes
+it to every worker's next ``collect``; while the steps in flight cover the demand, it lets
+idle workers wait for those weights.
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@ learner's Ray host counts the segments that arrive while its process still loads
 
 ``LearnerStats``: the learner's throughput counters. ``Sources``: which segment
 deliveries were taken, so that a retried one is taken once. ``all_done``: whether the
-run has its steps. ``on_policy_wanted``: an on-policy learner's demand, steps still
-missing before its next update.
+run has its steps, ``steps_left`` how many it still needs. ``on_policy_wanted``: an
+on-policy learner's demand, steps still missing before its next update.
 """
 
 from __future__ import annotations
@@ -24,6 +24,17 @@ def all_done(steps: Mapping[str, int], config: RunConfig, max_steps: int | None)
     or else its config's ``max_steps``; none seen, not done."""
     return bool(steps) and all(
         count >= (max_steps or config.for_behavior(behavior).max_steps)
+        for behavior, count in steps.items()
+    )
+
+
+def steps_left(steps: Mapping[str, int], config: RunConfig, max_steps: int | None) -> int | None:
+    """Steps until every behavior seen has its steps (0: the run has them; None: none seen),
+    what a learner asks for at most, so the run stops near its ``max_steps``."""
+    if not steps:
+        return None
+    return max(
+        max((max_steps or config.for_behavior(behavior).max_steps) - count, 0)
         for behavior, count in steps.items()
     )
 

@@ -25,7 +25,7 @@ from batches import keys
 from batches.segment import Segment
 from batches.specs import spec_from_dict
 from learners import checkpoint
-from learners.counters import LearnerStats, Sources, all_done
+from learners.counters import LearnerStats, Sources, all_done, steps_left
 from learners.devices import Compute, to_cpu
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
@@ -125,10 +125,17 @@ class CentralLearner:
         return self.version, self.wanted()
 
     def wanted(self) -> int | None:
-        """Steps before the next on-policy update of any behavior (None: no such behavior).
-        The service holds workers back beyond it, so that update trains on fresh data."""
+        """Steps before the next on-policy update of any behavior (None: no such behavior),
+        and never more than the run still needs (0: it has them all). The service holds
+        workers back beyond it, so that update trains on fresh data, and the run stops
+        within a collect of its ``max_steps``."""
+        steps = {name: s.steps for name, s in self.behaviors.items()}
+        if (left := steps_left(steps, self.config, self.max_steps)) == 0:
+            return 0
         wants = [w for s in self.behaviors.values() if (w := s.algorithm.wanted()) is not None]
-        return min(wants) if wants else None
+        if not wants:
+            return None
+        return min(wants) if left is None else min(*wants, left)
 
     def weights(self) -> tuple[int, dict[str, dict[str, np.ndarray]]]:
         """Numpy weights (a worker loads them without importing torch), copied off the

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from batches import keys
 from batches.segment import Segment
-from learners.counters import LearnerStats, Sources, all_done, on_policy_wanted
+from learners.counters import LearnerStats, Sources, all_done, on_policy_wanted, steps_left
 from learners.trainers import trainer
 
 if TYPE_CHECKING:
@@ -111,7 +111,7 @@ class LearnerHost:
             if not self._built.is_set():
                 self._keep_early(segments)
                 wanted = self._early_wanted()
-                if wanted is None or wanted > 1:  # the first update's data is not all in
+                if wanted != 1:  # no update is due: its data is not all in, or none will be
                     return 0, wanted
                 segments = []  # kept: handed over with the others, once the learner is up
             return self.learner.submit(segments)
@@ -127,13 +127,18 @@ class LearnerHost:
             self._early_steps[behavior] = self._early_steps.get(behavior, 0) + len(segment)
 
     def _early_wanted(self) -> int | None:
-        """The on-policy demand of the behaviors seen so far, from their configs."""
+        """The on-policy demand of the behaviors seen so far, from their configs, as
+        ``CentralLearner.wanted`` bounds it."""
+        if (left := steps_left(self._early_steps, self.config, self.max_steps)) == 0:
+            return 0
         wants = [
             on_policy_wanted(settings.hyperparameters.buffer_size, steps)
             for behavior, steps in self._early_steps.items()
             if trainer(settings := self.config.for_behavior(behavior)).waits_for_fresh_data
         ]
-        return min(wants) if wants else None
+        if not wants:
+            return None
+        return min(wants) if left is None else min(*wants, left)
 
     def weights(self) -> tuple[int, dict[str, Any]]:
         with self._lock:

@@ -197,6 +197,8 @@ class RolloutService(WorkerSupervision):
                 self._issue(index)
             self._idle.difference_update(idle)
             return
+        if self._wanted == 0:
+            return  # the learner has every step the run needs: none ahead either
         coming = sum(steps for _, steps in self._collects.values())
         coming += sum(sum(steps.values()) for _, _, steps in self._books.values())
         missing = self._wanted + self.config.collect_ahead - coming

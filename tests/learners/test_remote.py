@@ -83,8 +83,7 @@ def test_segments_before_the_learner_is_built_are_counted_then_handed_over_once(
 
 
 def test_off_policy_segments_wait_for_the_learner_without_a_demand():
-    config = parse_config({"behaviors": {"A": {"trainer_type": "sac"}}})
-    host = HeldHost(config, None, 1, seed=0)
+    host = HeldHost(sac_config(), None, 1, seed=0)
     try:
         assert host.submit([piece(1)]) == (0, None)  # SAC: any amount, any time
         assert host.progress()["steps"] == {BEHAVIOR: 32}
@@ -93,6 +92,26 @@ def test_off_policy_segments_wait_for_the_learner_without_a_demand():
         assert host.progress()["steps"] == {BEHAVIOR: 64}
     finally:
         host.gate.set()
+
+
+@pytest.mark.parametrize("built", [False, True], ids=["loading", "built"])
+def test_the_demand_never_passes_max_steps_and_ends_at_zero(built):
+    """--max-steps 80: PPO asks for no more than the run still needs, SAC for any amount
+    until then; once every behavior has its steps, both ask for nothing."""
+    for config, first in ((ppo_config(buffer_size=100), 80 - 32), (sac_config(), None)):
+        host = HeldHost(config, 80, 1, seed=0)
+        try:
+            if built:
+                host.gate.set()
+                host.prepare()
+            assert host.submit([piece(1)]) == (0, first)
+            assert host.submit([piece(2), piece(3)])[1] == 0  # 96 steps of 80
+        finally:
+            host.gate.set()
+
+
+def sac_config():
+    return parse_config({"behaviors": {"A": {"trainer_type": "sac"}}})
 
 
 def test_a_learner_that_fails_to_build_says_why_on_the_next_call():

@@ -69,3 +69,7 @@ def test_collect_ahead_keeps_idle_workers_collecting_past_the_demand():
 def test_no_worker_is_asked_for_less_than_a_row(horizon):
     """Rows arrive whole: a smaller ask would return after the same row, one more trip."""
     assert pump(100, horizon=horizon) == [[max(25, horizon)]] * 4
+
+
+def test_a_learner_with_all_its_steps_gets_no_collect_not_even_ahead():
+    assert pump(0, ahead=1200) == [[], [], [], []]
