@@ -20,7 +20,7 @@ import yaml
 
 from batches.contracts import base_name
 from driver.options import TrainingError, TrainOptions
-from learners.config import ConfigError, config_for_env, load_config, parse_config
+from learners.config import DEFAULTS, ConfigError, config_for_env, load_config, parse_config
 from learners.factory import policy_factory
 from learners.settings import RunConfig
 from rollout.builds import UNITYSIM_PREFIX, UnityError, resolve_build
@@ -42,7 +42,7 @@ def load_run_config(options: TrainOptions) -> RunConfig:
     shipped = config_for_env(options.env.removeprefix(UNITYSIM_PREFIX))
     path = Path(options.config) if options.config else shipped
     try:
-        return load_config(path) if path else parse_config({}, "<defaults>")
+        return load_config(path) if path else parse_config({}, DEFAULTS)
     except ConfigError as error:
         raise TrainingError(str(error)) from None
 

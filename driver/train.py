@@ -34,6 +34,7 @@ from driver.options import TrainingError, TrainOptions
 from driver.run_dir import Plan, open_run, plan
 from driver.startup import first_steps, startup_times
 from driver.summaries import Summaries
+from learners.config import DEFAULTS
 from learners.devices import DeviceError, learner_device
 from learners.factory import policy_factory
 from learners.remote import learner_actor
@@ -292,6 +293,28 @@ class BehaviorNotes:
         self.config, self.no_graphics = config, no_graphics
         self.seen, self.named = set[str](), set[str]()  # behaviors, and their config names
 
+    def _unconfigured(self, name: str) -> None:
+        """As mlagents-learn: without a file, the defaults and a warning; with one, its
+        default_settings, else a stop naming what to add."""
+        source = self.config.source
+        if source == DEFAULTS:
+            log.warning(
+                "Behavior name %s does not match any behaviors specified in the trainer "
+                "configuration file. A default configuration will be used.",
+                name,
+            )
+        elif self.config.default_given:
+            log.warning(
+                "%s is not among the behaviors of %s: it trains with default_settings",
+                name,
+                source,
+            )
+        else:
+            raise TrainingError(
+                f"the build's behavior {name} is not in {source}: add it under behaviors:, or "
+                "add a default_settings: section (mlagents-learn stops here too)"
+            )
+
     def report(self, specs: Mapping[str, dict[str, Any]]) -> None:
         for behavior, spec in specs.items():
             if behavior in self.seen:
@@ -300,11 +323,7 @@ class BehaviorNotes:
             name = base_name(behavior)
             if name not in self.config.behaviors and name not in self.named:
                 self.named.add(name)
-                log.warning(
-                    "Behavior name %s does not match any behaviors specified in the trainer "
-                    "configuration file. A default configuration will be used.",
-                    name,
-                )
+                self._unconfigured(name)
             images = [o["name"] for o in spec["observations"] if len(o["shape"]) == 3]
             if self.no_graphics and images:
                 log.warning(

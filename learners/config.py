@@ -51,6 +51,7 @@ from learners.settings import RunConfig, TrainerSettings
 from learners.trainers import TRAINERS
 
 logger = logging.getLogger(__name__)
+DEFAULTS = "<defaults>"  # the source of a run without a config file
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 
@@ -300,6 +301,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
         unsupported=reported,
         source=source,
         torch_device=torch_device,
+        default_given=data.get("default_settings") is not None,
     )
 
 

@@ -85,6 +85,7 @@ class RunConfig:
     unsupported: tuple[str, ...]  # dotted paths of known keys we do not implement
     source: str = "<config>"
     torch_device: str | None = None  # torch_settings.device (None: --device, else auto)
+    default_given: bool = False  # default_settings: in the file, for behaviors it does not name
 
     def for_behavior(self, behavior: str) -> TrainerSettings:
         """Settings for ``behavior`` (``?team=`` ignored); ``default`` if not listed."""

@@ -109,16 +109,35 @@ def spec(*shapes: tuple[int, ...]) -> dict:
 
 
 def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
+    """As mlagents-learn: without a config file, a warning and the defaults."""
     from driver.train import BehaviorNotes
 
-    notes = BehaviorNotes(parse_config(TWO), no_graphics=False)
+    notes = BehaviorNotes(parse_config({}, "<defaults>"), no_graphics=False)
     with caplog.at_level(logging.WARNING):
-        notes.report({NAMES["Striker"]: spec((8,)), "3DBallHard?team=0": spec((8,))})
+        notes.report({"3DBallHard?team=0": spec((8,))})
         notes.report({"3DBallHard?team=0": spec((8,)), "3DBallHard?team=1": spec((8,))})
     said = [r.getMessage() for r in caplog.records]
     assert said == [
         "Behavior name 3DBallHard does not match any behaviors specified in the trainer "
         "configuration file. A default configuration will be used."
+    ]
+
+
+def test_a_config_file_must_name_every_behavior_or_give_default_settings(caplog):
+    """As mlagents-learn: a file without default_settings that lacks the build's behavior
+    stops the run, naming what to add; with default_settings, those serve (and we say so)."""
+    from driver.options import TrainingError
+    from driver.train import BehaviorNotes
+
+    named = BehaviorNotes(parse_config(TWO, "two.yaml"), no_graphics=False)
+    named.report({NAMES["Striker"]: spec((8,))})  # named: nothing to say
+    with pytest.raises(TrainingError, match=r"behavior 3DBall is not in two\.yaml: add it under"):
+        named.report({"3DBall?team=0": spec((8,))})
+    with_defaults = parse_config({**TWO, "default_settings": {"max_steps": 10}}, "two.yaml")
+    with caplog.at_level(logging.WARNING):
+        BehaviorNotes(with_defaults, no_graphics=False).report({"3DBall?team=0": spec((8,))})
+    assert [r.getMessage() for r in caplog.records] == [
+        "3DBall is not among the behaviors of two.yaml: it trains with default_settings"
     ]
 
 
