@@ -112,6 +112,7 @@ class _Layer:
     hyper: dict[str, Any] = field(default_factory=dict)
     network: dict[str, Any] = field(default_factory=dict)
     extrinsic: dict[str, Any] = field(default_factory=dict)
+    signals: set[str] | None = None  # the reward signals it names (None: no reward_signals)
     top: dict[str, Any] = field(default_factory=dict)
 
 
@@ -164,6 +165,8 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
             raise _unknown(net_path, key, {*NETWORK, *NETWORK_UNSUPPORTED})
 
     reward_path = f"{path}.reward_signals"
+    if "reward_signals" in data:
+        layer.signals = set(_mapping(reward_path, data["reward_signals"]))
     for key, value in _mapping(reward_path, data.get("reward_signals")).items():
         if key in REWARD_UNSUPPORTED:
             unsupported.append(f"{reward_path}.{key}")
@@ -186,6 +189,9 @@ def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSetti
 
     A layer's hyperparameters that ``trainer_type`` does not use (``default_settings`` for
     PPO under a SAC behavior) are skipped: the layer was checked against its own type.
+    Reward signals merge as ML-Agents merges them: the first layer's (the extrinsic one
+    when it names none), and those the later ones add; without the extrinsic signal among
+    them, the environment's reward is not trained on.
     """
     base = defaults(trainer_type)
     hyper: dict[str, Any] = {}
@@ -199,12 +205,17 @@ def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSetti
         network.update(layer.network)
         extrinsic.update(layer.extrinsic)
         top.update(layer.top)
+    signals = set(layers[0].signals if layers[0].signals is not None else {"extrinsic"})
+    for layer in layers[1:]:
+        signals |= layer.signals or set()
     settings = replace(
         base,
         hyperparameters=replace(base.hyperparameters, **hyper),
         network_settings=replace(base.network_settings, **network),
         gamma=extrinsic.get("gamma", base.gamma),
-        reward_strength=extrinsic.get("strength", base.reward_strength),
+        reward_strength=extrinsic.get("strength", base.reward_strength)
+        if "extrinsic" in signals
+        else 0.0,
         **top,
     )
     h = settings.hyperparameters
@@ -285,7 +296,9 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
             raise ConfigError(f"{path}: {'empty' if not key else 'duplicate'} behavior name")
         layer = _parse_layer(path, raw, default_type, unsupported)
         trainer_type = layer.trainer_type or default_type
-        behaviors[key] = _resolve(path, trainer_type, [default_layer, layer])
+        # ML-Agents merges a behavior over default_settings only when the file has them
+        given = [default_layer, layer] if data.get("default_settings") is not None else [layer]
+        behaviors[key] = _resolve(path, trainer_type, given)
 
     engine = _engine(data.get("engine_settings"), unsupported)
     parameters = _environment_parameters(data.get("environment_parameters"), unsupported)

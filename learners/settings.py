@@ -66,7 +66,7 @@ class TrainerSettings:
     hyperparameters: Hyperparameters = field(default_factory=Hyperparameters)
     network_settings: NetworkSettings = field(default_factory=NetworkSettings)
     gamma: float = 0.99  # reward_signals.extrinsic.gamma
-    reward_strength: float = 1.0  # reward_signals.extrinsic.strength
+    reward_strength: float = 1.0  # reward_signals.extrinsic.strength (0: no extrinsic signal)
     max_steps: int = 500_000
     time_horizon: int = 64
     summary_freq: int = 50_000
