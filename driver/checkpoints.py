@@ -17,10 +17,13 @@ from learners.settings import RunConfig
 
 
 class Checkpoints:
-    def __init__(self, run_dir: Path, config: RunConfig, start: Mapping[str, int]) -> None:
-        """``start``: each behavior's steps when the run (or its resumption) began."""
+    def __init__(
+        self, run_dir: Path, config: RunConfig, start: Mapping[str, int], writes: bool = True
+    ) -> None:
+        """``start``: each behavior's steps when the run (or its resumption) began;
+        ``writes``: False for a run that trains nothing (``--inference``)."""
         self.directory = run_dir / "checkpoints"
-        self.config = config
+        self.config, self.writes = config, writes
         for stale in self.directory.glob("*/.*.tmp"):  # a save its process was killed in
             stale.unlink(missing_ok=True)
         self.next_step = {
@@ -33,6 +36,8 @@ class Checkpoints:
 
     def due(self, steps: Mapping[str, int]) -> list[str]:
         """The behaviors whose steps reached their next checkpoint."""
+        if not self.writes:
+            return []
         return [
             behavior
             for behavior, count in steps.items()
@@ -44,7 +49,9 @@ class Checkpoints:
         behaviors of it), each behavior's oldest beyond its ``keep_checkpoints`` removed."""
         from learners import checkpoint
 
-        saved = []
+        saved: list[Path] = []
+        if not self.writes:
+            return saved
         for behavior, entry in state["behaviors"].items():
             settings = self.config.for_behavior(behavior)
             steps = int(entry["steps"])

@@ -14,13 +14,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, NoReturn
 
-from driver.options import (
-    CollectOptions,
-    TrainingError,
-    TrainOptions,
-    add_arguments,
-    from_arguments,
-)
+from driver.declaration import TrainingError, add_arguments, from_arguments
+from driver.options import CollectOptions, TrainOptions
 
 if TYPE_CHECKING:
     from driver.local_ray import BackgroundRay
@@ -64,14 +59,19 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
 
 def _cmd_train(args: argparse.Namespace) -> int:
     """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
+    import logging
+
     from driver.run_dir import plan
 
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
-        options = from_arguments(TrainOptions, args)
-        planned = plan(options)  # the checks that need neither Ray nor torch
+        planned = plan(from_arguments(TrainOptions, args))  # needs neither Ray nor torch
     except TrainingError as error:
         return _error(error)
-    options = dataclasses.replace(options, progress=options.progress and sys.stdout.isatty())
+    options = dataclasses.replace(
+        planned.options, progress=planned.options.progress and sys.stdout.isatty()
+    )
+    planned = dataclasses.replace(planned, options=options)
     if not options.address:
         _loopback_only_ray()
     from driver.local_ray import BackgroundRay
@@ -93,7 +93,9 @@ def _train(options: TrainOptions, starting: BackgroundRay | None, planned: Plan)
     from driver.train import train
     from rollout.service import RolloutError
 
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if options.debug:  # ours, not every library's
+        for package in ("driver", "rollout", "learners"):
+            logging.getLogger(package).setLevel(logging.DEBUG)
     try:
         result = train(options, starting, planned)
     except TrainingError as error:
@@ -108,7 +110,8 @@ def _train(options: TrainOptions, starting: BackgroundRay | None, planned: Plan)
     how = f"stopped by {'SIGINT/SIGTERM'}" if result.interrupted else "finished"
     return 0, (
         f"{how}: {sum(result.steps.values()):,} steps in {result.seconds:.0f}s, "
-        f"mean reward {rewards or '-'}; checkpoints in {result.checkpoint}"
+        f"mean reward {rewards or '-'}; "
+        + (f"checkpoints in {result.checkpoint}" if not options.inference else "no checkpoint")
     )
 
 

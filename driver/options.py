@@ -1,65 +1,29 @@
 """The options of ``unity-rollout train`` and ``collect``, declared once: each is a typed
-field with its default, its help and its check, and the command line, its help text, the
-defaults and the validation all come from these declarations (``add_arguments``,
-``from_arguments``, ``validate``). Validation runs before Ray starts, and every problem
-is one line naming the option."""
+field with its default, its help, its check and, for mlagents-learn's, its key in a
+trainer config's run-level sections; the command line, its help text, the defaults, the
+config's run-level keys and the validation all come from these declarations
+(``driver/declaration.py``). Every mlagents-learn 1.1.0 option is one of them, with its
+meaning; where our default differs, the help says so. Validation runs before Ray starts,
+and every problem is one line naming the option."""
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar, get_args, get_type_hints
+from dataclasses import dataclass
+from typing import Literal
 
+from driver.declaration import (
+    TrainingError,
+    at_least,
+    check_fields,
+    given_field,
+    one_path_component,
+    option,
+    positive,
+)
 from rollout.restarts import RestartPolicy
 
-Check = Callable[[Any], str | None]  # a problem with the value, or None
-
-
-class TrainingError(Exception):
-    """A one-line problem with the run's options, found before anything starts."""
-
-
-@dataclass(frozen=True)
-class Option:
-    help: str
-    parse: Callable[[str], Any] | None = None  # text -> value (default: the field's type)
-    check: Check | None = None
-    aliases: tuple[str, ...] = ()
-    negative: str | None = None  # a True default switched off by this flag
-
-
-def option(default: Any, help: str, **how: Any) -> Any:
-    return field(default=default, metadata={"option": Option(help, **how)})
-
-
-def flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-# ---- checks and parsers ---------------------------------------------------------------
-
-
-def at_least(low: float) -> Check:
-    def check(value: Any) -> str | None:
-        return None if value is None or value >= low else f"at least {low:g}, got {value:g}"
-
-    return check
-
-
-def positive(value: Any) -> str | None:
-    if value is None or (math.isfinite(value) and value > 0):
-        return None
-    return f"positive, got {value:g}"
-
-
-def one_path_component(value: str) -> str | None:
-    """A run id names one directory inside the results directory, never a path."""
-    if value in ("", ".", "..") or any(c in value for c in "/\\\0"):
-        return f"one directory name (no '/', not '.' or '..'), got {value!r}"
-    return None
+__all__ = ["CollectOptions", "TrainOptions", "TrainingError"]
 
 
 def workers_value(text: str) -> int | str:
@@ -93,30 +57,93 @@ _restarts = RestartPolicy()
 
 @dataclass(frozen=True)
 class TrainOptions:
-    env: str = option("unitysim:3DBall", ENV_HELP)
-    workers: int | Literal["auto"] = option(
-        2,
-        "Ray workers, one Unity each; auto: one per CPU of the cluster left after the "
-        "learner's one, following the cluster as nodes join and leave",
-        parse=workers_value,
-        check=workers_count,
+    env: str = option(
+        "unitysim:3DBall",
+        f"{ENV_HELP} (mlagents-learn's default is the editor)",
+        yaml="env_settings.env_path",
     )
     config: str | None = option(
-        None, "ML-Agents trainer config YAML (default: config/<Env>.yaml if present)"
+        None,
+        "ML-Agents trainer config YAML, also as the first argument, as mlagents-learn takes "
+        "it (default: config/<Env>.yaml if present)",
+        positional="trainer_config_path",
     )
-    run_id: str = option("run", "results go to RESULTS_DIR/RUN_ID", check=one_path_component)
-    results_dir: str = option("results", "where runs are kept")
-    seed: int = option(0, "seeds the players and the policies' initial weights")
-    resume: bool = option(False, "continue from the last checkpoint")
+    workers: int | Literal["auto"] = option(
+        2,
+        "Ray workers, one Unity each (mlagents-learn's --num-envs, whose default is 1); "
+        "auto: one per CPU of the cluster left after the learner's one, following the "
+        "cluster as nodes join and leave",
+        parse=workers_value,
+        check=workers_count,
+        aliases=("--num-envs",),
+        yaml="env_settings.num_envs",
+    )
+    run_id: str = option(
+        "run",
+        "results go to RESULTS_DIR/RUN_ID (mlagents-learn's default: ppo)",
+        check=one_path_component,
+        yaml="checkpoint_settings.run_id",
+    )
+    results_dir: str = option(
+        "results", "where runs are kept", yaml="checkpoint_settings.results_dir"
+    )
+    seed: int = option(
+        0,
+        "seeds the players and the policies' initial weights; -1: a random seed, "
+        "mlagents-learn's default (ours is 0, so that a run can be repeated)",
+        check=at_least(-1),
+        yaml="env_settings.seed",
+    )
+    resume: bool = option(
+        False,
+        "continue from each behavior's newest checkpoint",
+        aliases=("--load",),
+        yaml=("checkpoint_settings.resume", "checkpoint_settings.load_model"),
+    )
     resume_if_exists: bool = option(
         False,
         "continue from the last checkpoint when the run has one, else start it: for "
         "entrypoints that may run again (a RayJob's retries, a resubmitted job)",
     )
-    force: bool = option(False, "overwrite an existing run")
+    force: bool = option(False, "overwrite an existing run", yaml="checkpoint_settings.force")
+    initialize_from: str | None = option(
+        None,
+        "start from the networks of RUN_ID, another run in RESULTS_DIR (its steps and "
+        "optimizer state are not taken); --resume wins over it",
+        check=one_path_component,
+        yaml="checkpoint_settings.initialize_from",
+    )
+    inference: bool = option(
+        False,
+        "run the policies without training them (with --resume or --initialize-from: the "
+        "trained ones); no checkpoint is written",
+        yaml="checkpoint_settings.inference",
+    )
+    train: bool = option(
+        False,
+        "mlagents-learn's deprecated --train: training is the default",
+        hidden=True,
+        yaml="checkpoint_settings.train_model",
+    )
     max_steps: int | None = option(None, "override every behavior's max_steps", check=at_least(1))
     max_seconds: float | None = option(None, "stop (with a checkpoint) after this", check=positive)
-    num_areas: int = option(1, "training areas per Unity", check=at_least(1))
+    num_areas: int = option(
+        1, "training areas per Unity", check=at_least(1), yaml="env_settings.num_areas"
+    )
+    base_port: int | None = option(
+        None,
+        "the Unity instances' ports from this one up (100 of them; a restarted instance "
+        "takes a fresh one); default: UNITY_ROLLOUT_PORT_RANGE, else a free range "
+        "(mlagents-learn's default: 5005)",
+        check=at_least(1024),
+        yaml="env_settings.base_port",
+    )
+    env_args: tuple[str, ...] = option(
+        (),
+        "every argument after it goes to the Unity executable, as with mlagents-learn",
+        rest=True,
+        yaml="env_settings.env_args",
+    )
     cpus: int = option(2, CPUS_HELP, check=at_least(1))
     address: str | None = option(None, "join an existing Ray cluster (e.g. auto in a job)")
     dashboard: bool = option(
@@ -128,6 +155,7 @@ class TrainOptions:
         60,
         "seconds to wait for Unity to connect, or to answer a step (as mlagents-learn)",
         check=at_least(1),
+        yaml="env_settings.timeout_wait",
     )
     max_learner_restarts: int = option(
         3,
@@ -156,6 +184,11 @@ class TrainOptions:
     mixed_precision: bool = option(
         False, "the learner runs its image encoders in bfloat16 autocast"
     )
+    deterministic: bool = option(
+        False,
+        "act deterministically: the mean of continuous actions, the likeliest of discrete "
+        "ones (every behavior's network_settings.deterministic)",
+    )
     collect_ahead: int = option(
         0,
         "on-policy (PPO): steps workers may collect past what the learner's next update "
@@ -169,24 +202,57 @@ class TrainOptions:
         "but cameras send blank frames; off: the config's engine_settings.no_graphics, else "
         "off, as mlagents-learn",
     )
+    no_graphics_monitor: bool = option(
+        False,
+        "the first Unity instance with graphics, the others without (engine_settings."
+        "no_graphics_monitor)",
+    )
+    width: int | None = option(
+        None, "the window's width in pixels (default: engine_settings, else 84)", check=at_least(1)
+    )
+    height: int | None = option(
+        None, "the window's height in pixels (default: engine_settings, else 84)", check=at_least(1)
+    )
+    quality_level: int | None = option(
+        None, "Unity's quality level (default: engine_settings, else 5)", check=at_least(0)
+    )
+    time_scale: float | None = option(
+        None, "Unity's time scale (default: engine_settings, else 20)", check=positive
+    )
+    target_frame_rate: int | None = option(
+        None, "Unity's target frame rate (default: engine_settings, else -1)", check=at_least(-1)
+    )
+    capture_frame_rate: int | None = option(
+        None, "Unity's capture frame rate (default: engine_settings, else 60)", check=at_least(0)
+    )
     max_lifetime_restarts: int = option(
         _restarts.max_lifetime_restarts,
-        "restarts of one Unity instance in the run, -1: no limit (as mlagents-learn)",
+        "restarts of one Unity instance in the run, -1: no limit (mlagents-learn's default: 10)",
         check=at_least(-1),
+        yaml="env_settings.max_lifetime_restarts",
     )
     restarts_rate_limit_n: int = option(
         _restarts.rate_limit_n,
-        "restarts of one Unity instance within the period, -1: no limit (as mlagents-learn)",
+        "restarts of one Unity instance within the period, -1: no limit (mlagents-learn's "
+        "default: 1)",
         check=at_least(-1),
+        yaml="env_settings.restarts_rate_limit_n",
     )
     restarts_rate_limit_period_s: float = option(
-        _restarts.rate_limit_period_s, "the rate limit's period", check=positive
+        _restarts.rate_limit_period_s,
+        "the rate limit's period",
+        check=positive,
+        yaml="env_settings.restarts_rate_limit_period_s",
     )
+    debug: bool = option(False, "debug-level logging from the driver", yaml="debug")
+    torch: bool = option(False, "removed from mlagents-learn: ignored", hidden=True)
+    tensorflow: bool = option(False, "removed from mlagents-learn: ignored", hidden=True)
     progress: bool = option(
         True,
         "no live display: one line per summary (also when output is not a terminal)",
         negative="--no-progress",
     )
+    given: frozenset[str] = given_field()
 
     @property
     def restarts(self) -> RestartPolicy:
@@ -216,50 +282,8 @@ class CollectOptions:
     seed: int = option(0, "seeds the players")
     cpus: int = option(2, CPUS_HELP, check=at_least(1))
     address: str | None = option(None, "an existing Ray cluster (e.g. auto)")
+    given: frozenset[str] = given_field()
 
     def validate(self) -> CollectOptions:
         check_fields(self)
         return self
-
-
-# ---- the declarations at work -------------------------------------------------------
-
-Options = TypeVar("Options", TrainOptions, CollectOptions)
-
-
-def check_fields(options: Any) -> None:
-    for item in dataclasses.fields(options):
-        declared: Option = item.metadata["option"]
-        if declared.check and (problem := declared.check(getattr(options, item.name))):
-            raise TrainingError(f"{flag(item.name)}: {problem}")
-
-
-def _scalar(annotation: Any) -> type:
-    """int for ``int | None``; str for anything the command line cannot type better."""
-    first = (get_args(annotation) or (annotation,))[0]
-    return first if first in (bool, int, float) else str
-
-
-def add_arguments(parser: argparse.ArgumentParser, kind: type) -> None:
-    hints = get_type_hints(kind)
-    for item in dataclasses.fields(kind):
-        declared: Option = item.metadata["option"]
-        default, help = item.default, declared.help
-        if declared.negative:
-            parser.add_argument(declared.negative, dest=item.name, action="store_false", help=help)
-            continue
-        scalar = _scalar(hints[item.name])
-        names = (flag(item.name), *declared.aliases)
-        if scalar is bool:
-            parser.add_argument(*names, dest=item.name, action="store_true", help=help)
-            continue
-        if default is not None:
-            help = f"{help} (default: {default})"
-        parse = declared.parse or scalar
-        parser.add_argument(*names, dest=item.name, type=parse, default=default, help=help)
-
-
-def from_arguments(kind: type[Options], arguments: argparse.Namespace) -> Options:
-    """The options a command line gave, checked (TrainingError on the first problem)."""
-    values = {item.name: getattr(arguments, item.name) for item in dataclasses.fields(kind)}
-    return kind(**values).validate()

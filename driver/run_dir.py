@@ -11,15 +11,17 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import random
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from batches.contracts import base_name
-from driver.options import TrainingError, TrainOptions
+from driver.declaration import TrainingError, from_settings
+from driver.options import TrainOptions
 from learners.config import DEFAULTS, ConfigError, config_for_env, load_config, parse_config
 from learners.factory import policy_factory
 from learners.settings import RunConfig
@@ -28,6 +30,7 @@ from rollout.ports import RANGE_VARIABLE, REGISTRY_VARIABLE, PortError, PortRang
 
 log = logging.getLogger(__name__)
 SQUASHING = ("tanh_squash", "conditional_sigma")  # set by the trainer type, not config keys
+ACTING_ONLY = ("deterministic",)  # how a network acts, not what it is: free on a resume
 
 
 @dataclass(frozen=True)
@@ -66,10 +69,14 @@ def check_environment() -> None:
 
 
 def plan(options: TrainOptions) -> Plan:
-    """Everything that can be checked before Ray starts; raises TrainingError."""
+    """Everything that can be checked before Ray starts, with the trainer config's
+    run-level settings taken where the command line gave none; raises TrainingError."""
     options.validate()
     check_environment()
     config = load_run_config(options)
+    options = settle(from_settings(options, config.run_settings, config.source).validate())
+    if options.deterministic:
+        config = config.deterministic()
     run_dir = Path(options.results_dir) / options.run_id
     has_checkpoints = any((run_dir / "checkpoints").rglob("*.pt"))
     if options.resume and not has_checkpoints:
@@ -85,6 +92,23 @@ def plan(options: TrainOptions) -> Plan:
     return Plan(options, config, run_dir, resume)
 
 
+def settle(options: TrainOptions) -> TrainOptions:
+    """What mlagents-learn makes of its own options: a seed of -1 drawn, --resume over
+    --initialize-from, and a word for the deprecated and removed ones."""
+    for name in ("torch", "tensorflow"):
+        if getattr(options, name):
+            log.warning("--%s was removed from mlagents-learn and does nothing here", name)
+    if options.train:
+        log.warning("--train is deprecated in mlagents-learn: training is the default")
+    if options.resume and options.initialize_from:
+        log.warning("--resume and --initialize-from: the run resumes, ignoring the initialization")
+        options = replace(options, initialize_from=None)
+    if options.seed == -1:
+        options = replace(options, seed=random.randrange(10_000))  # as mlagents-learn draws it
+        log.warning("--seed -1: this run's seed is %d", options.seed)
+    return options
+
+
 def _resolve(build: str | None) -> None:
     try:
         resolve_build(build)
@@ -92,19 +116,25 @@ def _resolve(build: str | None) -> None:
         raise TrainingError(str(error)) from None
 
 
-def open_run(plan: Plan) -> dict[str, Any] | None:
-    """The checkpoint to resume from (None for a fresh run), checked against the config,
-    then the run's directory written: nothing of the run changes when a check fails."""
-    options, run_dir = plan.options, plan.run_dir
-    resume = None
-    if plan.resume:
-        from learners import checkpoint  # torch: only a resumed or saving driver loads it
+@dataclass(frozen=True)
+class Start:
+    """What the learner starts from: a checkpoint of this run (``--resume``), or the
+    networks of another (``--initialize-from``), or neither."""
 
-        try:
-            resume = checkpoint.load(run_dir)
-        except checkpoint.CheckpointError as error:
-            raise TrainingError(f"--resume: {error}") from None
-        check_fits(resume, plan.config, options.seed, run_dir)
+    resume: dict[str, Any] | None = None
+    initial: dict[str, Any] | None = None
+
+
+def open_run(plan: Plan) -> Start:
+    """The checkpoints the run starts from, checked against the config, then the run's
+    directory written: nothing of the run changes when a check fails."""
+    options, run_dir = plan.options, plan.run_dir
+    start = Start()
+    if plan.resume:
+        start = Start(resume=_checkpoints("--resume", run_dir, plan))
+    elif options.initialize_from:
+        source = Path(options.results_dir) / options.initialize_from
+        start = Start(initial=_checkpoints("--initialize-from", source, plan))
     _resolve(None if options.env == "editor" else options.env)
     try:  # before Unity and the learner start: a run that cannot write would lose its checkpoints
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -119,39 +149,56 @@ def open_run(plan: Plan) -> dict[str, Any] | None:
         ) from None
     for problem in plan.config.unsupported:
         log.warning("%s: not supported by unity-rollout, ignored", problem)
-    record = {"options": dataclasses.asdict(options), "config": _plain(plan.config)}
+    record = {"options": _plain(options), "config": _plain(plan.config)}
     (run_dir / "configuration.yaml").write_text(yaml.safe_dump(record, sort_keys=False))
-    return resume
+    return start
 
 
-def check_fits(state: dict[str, Any], config: RunConfig, seed: int, run_dir: Path) -> None:
+def _checkpoints(option: str, run_dir: Path, plan: Plan) -> dict[str, Any]:
+    """A run's newest checkpoints, fit for the config; a one-line error naming the option
+    when there are none or they do not fit."""
+    from learners import checkpoint  # torch: only a driver that loads or saves one needs it
+
+    try:
+        state = checkpoint.load(run_dir)
+    except checkpoint.CheckpointError as error:
+        raise TrainingError(f"{option}: {error}") from None
+    except FileNotFoundError:
+        raise TrainingError(f"{option}: no checkpoint in {run_dir}/checkpoints") from None
+    check_fits(state, plan.config, plan.options.seed, run_dir, option)
+    return state
+
+
+def check_fits(
+    state: dict[str, Any], config: RunConfig, seed: int, run_dir: Path, option: str = "--resume"
+) -> None:
     """Each checkpointed behavior's trainer type and network are what the config builds
     now; the first difference is the error."""
     factory = policy_factory(config, seed)
     advice = (
-        f"resume with the config it was trained with ({run_dir / 'configuration.yaml'}), "
-        "or start a new --run-id"
+        f"use the config it was trained with ({run_dir / 'configuration.yaml'}), or start "
+        "a new --run-id"
     )
     for behavior, entry in state["behaviors"].items():
         name, now = base_name(behavior), config.for_behavior(behavior).trainer_type
         trained = entry.get("trainer_type")
         if trained is not None and trained != now:
             raise TrainingError(
-                f"--resume: {name} was trained with trainer_type {trained}, the config now "
+                f"{option}: {name} was trained with trainer_type {trained}, the config now "
                 f"says {now}; {advice}"
             )
         wanted = dataclasses.asdict(factory.settings_for(behavior))
         for key, was in entry["network_settings"].items():
-            if wanted.get(key) == was:
+            if wanted.get(key) == was or key in ACTING_ONLY:
                 continue
             if key in SQUASHING:
                 was_text = "a tanh-squashed (sac) policy" if was else "an unsquashed policy"
                 raise TrainingError(
-                    f"--resume: {name} was trained as {was_text}, the config now gives "
+                    f"{option}: {name} was trained as {was_text}, the config now gives "
                     f"trainer_type {now}; {advice}"
                 )
             raise TrainingError(
-                f"--resume: {name} was trained with network_settings.{key} {was}, the config "
+                f"{option}: {name} was trained with network_settings.{key} {was}, the config "
                 f"now gives {wanted.get(key)}; {advice}"
             )
 
@@ -164,4 +211,6 @@ def _plain(value: Any) -> Any:
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, tuple | list):
         return [_plain(v) for v in value]
+    if isinstance(value, frozenset | set):
+        return sorted(_plain(v) for v in value)
     return value

@@ -28,10 +28,11 @@ from ray.exceptions import RayActorError
 
 from batches.contracts import base_name
 from driver.checkpoints import Checkpoints
+from driver.declaration import TrainingError
 from driver.learner_keeper import LearnerKeeper, load_into
 from driver.local_ray import BackgroundRay, init_local_ray
-from driver.options import TrainingError, TrainOptions
-from driver.run_dir import Plan, open_run, plan
+from driver.options import TrainOptions
+from driver.run_dir import Plan, Start, open_run, plan
 from driver.startup import first_steps, startup_times
 from driver.summaries import Summaries
 from learners.config import DEFAULTS
@@ -41,6 +42,7 @@ from learners.remote import learner_actor
 from learners.settings import RunConfig
 from learners.trainers import trainer
 from rollout.membership import request_workers, workers_wanted
+from rollout.ports import PortRange
 from rollout.segments import Horizons
 from rollout.service import (
     LearnerDied,
@@ -66,17 +68,23 @@ class TrainResult:
 
 
 def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> UnityConfig:
+    """What every Unity instance gets: the trainer config's engine_settings, the command
+    line's engine options over them (as mlagents-learn), the run's seed and arguments."""
     build = None if options.env == "editor" else options.env
     engine_fields = {f.name for f in dataclasses.fields(EngineSettings)}
-    engine = EngineSettings(**{k: v for k, v in config.engine.items() if k in engine_fields})
+    given = {k: v for k, v in config.engine.items() if k in engine_fields}
+    given |= {k: v for k in engine_fields if (v := getattr(options, k)) is not None}
     return UnityConfig(
         build,
-        # the one engine setting a player takes as an argument, not through a side channel
+        # the engine settings a player takes as arguments, not through a side channel
         no_graphics=options.no_graphics or bool(config.engine.get("no_graphics", False)),
+        no_graphics_monitor=options.no_graphics_monitor
+        or bool(config.engine.get("no_graphics_monitor", False)),
         seed=options.seed,
         num_areas=options.num_areas,
-        engine=engine,
+        engine=EngineSettings(**given),
         env_params=dict(config.environment_parameters),
+        additional_args=options.env_args,
         log_folder=str(run_dir / "unity-logs"),
         restarts=options.restarts,
         timeout_wait=options.timeout_wait,
@@ -101,6 +109,7 @@ def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
         seed=options.seed,
         device=device,
         mixed_precision=options.mixed_precision,
+        inference=options.inference,
     )
 
 
@@ -133,21 +142,34 @@ def service_config(
         learner_cpus=options.learner_cpus,
         await_learner_weights=resume,
         collect_ahead=options.collect_ahead,
+        port_range=ports_from(options.base_port),
     )
+
+
+def ports_from(base_port: int | None) -> PortRange | None:
+    """mlagents-learn's --base-port: ports from it up (a restarted instance takes a fresh
+    one, so a range of them); None: UNITY_ROLLOUT_PORT_RANGE or the default range."""
+    return None if base_port is None else PortRange(base_port, min(base_port + 99, 65535))
 
 
 def build_system(
     options: TrainOptions,
     config: RunConfig,
     unity: UnityConfig,
-    resume: dict[str, Any] | None,
+    start: Start,
     device: str = "cpu",
 ) -> tuple[RolloutService, Any]:
-    """Learner actor (restored when resuming) and the service with its workers (not started)."""
+    """Learner actor (restored when resuming, from another run's networks when
+    initialized) and the service with its workers (not started), which wait for the
+    learner's weights when it does not start from the factory's."""
     learner = start_learner(options, config, device)
-    if resume is not None:
-        load_into(learner, resume)
-    settings = service_config(options, config, unity, resume is not None)
+    if start.resume is not None:
+        load_into(learner, start.resume)
+    elif start.initial is not None:
+        ray.get(learner.prepare.remote())  # as load_into: built before tensors arrive
+        ray.get(learner.initialize.remote(start.initial))
+    awaits = start.resume is not None or start.initial is not None
+    settings = service_config(options, config, unity, awaits)
     return RolloutService(settings, policy_factory(config, options.seed), learner), learner
 
 
@@ -174,7 +196,8 @@ def train(
     (waited for once the run's directory is open, left to the caller to stop);
     ``planned``: ``run_dir.plan(options)``, when the caller checked it before Ray."""
     planned = planned or plan(options)
-    resume = open_run(planned)
+    options = planned.options  # with what the trainer config's run-level sections give
+    start = open_run(planned)
     config, run_dir = planned.config, planned.run_dir
     unity = unity_config(options, config, run_dir)
     started_ray = False
@@ -187,7 +210,7 @@ def train(
             init_local_ray(options.cpus)
         started_ray = True
     try:
-        return _run(options, config, unity, run_dir, resume)
+        return _run(options, config, unity, run_dir, start)
     finally:
         if started_ray:
             ray.shutdown()
@@ -198,12 +221,13 @@ def _run(
     config: RunConfig,
     unity: UnityConfig,
     run_dir: Path,
-    resume: dict[str, Any] | None,
+    start: Start,
 ) -> TrainResult:
+    resume = start.resume
     start_steps = {n: int(b["steps"]) for n, b in resume["behaviors"].items()} if resume else {}
-    checkpoints = Checkpoints(run_dir, config, start_steps)
+    checkpoints = Checkpoints(run_dir, config, start_steps, writes=not options.inference)
     device = choose_device(options, config)
-    service, learner = build_system(options, config, unity, resume, device)
+    service, learner = build_system(options, config, unity, start, device)
     keeper = LearnerKeeper(
         learner,
         lambda: start_learner(options, config, device),
@@ -271,7 +295,7 @@ def _run(
                 },
                 "version": result.version,
                 "seconds": round(result.seconds, 1),
-                "checkpoint": str(checkpoints.directory),
+                "checkpoint": str(checkpoints.directory) if checkpoints.writes else None,
                 "interrupted": received[0] if received else None,
                 "faults": {**service.metrics.faults(), "duplicate_steps": duplicates},
                 "ledger": service.ledger.summary(),
@@ -343,6 +367,8 @@ def _keep_what_was_learned(
         state = ray.get(keeper.learner.state_dict.remote())
     except RayActorError:
         return "the learner died with the run: its last checkpoint stays"
+    if not checkpoints.writes:
+        return "--inference: no checkpoint"
     if not any(int(entry["steps"]) for entry in state["behaviors"].values()):
         return "nothing was trained and no checkpoint written: the same command starts it anew"
     checkpoints.save(state, meta)

@@ -196,7 +196,10 @@ class NumpyActor:
             else:
                 assert self._log_std is not None
                 log_std = self._log_std
-            noise = self.rng.standard_normal(mean.shape, dtype=np.float32)
+            if self.settings.deterministic:
+                noise = np.zeros(mean.shape, np.float32)
+            else:
+                noise = self.rng.standard_normal(mean.shape, dtype=np.float32)
             continuous = mean + noise * np.exp(log_std)
             gaussian = -0.5 * noise * noise - log_std - _HALF_LOG_2PI
             if self.settings.tanh_squash:  # as ActorCritic.act: Jacobian, then squash
@@ -214,8 +217,11 @@ class NumpyActor:
                 offset += size
                 branch_logp = branch - branch.max(-1, keepdims=True)
                 branch_logp -= np.log(np.exp(branch_logp).sum(-1, keepdims=True))
-                gumbel = -np.log(self.rng.exponential(size=branch.shape))
-                pick = (branch_logp + gumbel).argmax(-1)
+                if self.settings.deterministic:
+                    pick = branch_logp.argmax(-1)
+                else:
+                    gumbel = -np.log(self.rng.exponential(size=branch.shape))
+                    pick = (branch_logp + gumbel).argmax(-1)
                 log_probs.append(branch_logp[np.arange(n), pick, None])
                 picks.append(pick)
             discrete = np.stack(picks, axis=-1).astype(np.int64)

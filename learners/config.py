@@ -38,6 +38,7 @@ from learners.config_keys import (
     NETWORK_UNSUPPORTED,
     REWARD_UNSUPPORTED,
     RUN_KEYS,
+    RUN_SETTINGS,
     RUN_UNSUPPORTED,
     SECTIONS,
     TOP,
@@ -275,7 +276,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
     """Check and resolve an already-loaded trainer config (the YAML's top-level mapping)."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: top level must be a mapping, got {type(data).__name__}")
-    known = {*RUN_KEYS, *RUN_UNSUPPORTED}
+    known = {*RUN_KEYS, *RUN_SETTINGS, *RUN_UNSUPPORTED}
     for key in data:
         if key not in known:
             raise _unknown("", key, known)
@@ -315,6 +316,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
         source=source,
         torch_device=torch_device,
         default_given=data.get("default_settings") is not None,
+        run_settings=MappingProxyType({k: data[k] for k in RUN_SETTINGS if k in data}),
     )
 
 

@@ -117,10 +117,10 @@ NETWORK: dict[str, Check] = {
     "normalize": _bool,
     "goal_conditioning_type": _choice("hyper", "none"),
     "vis_encode_type": _choice(*VIS_ENCODE_TYPES),
+    "deterministic": _bool,
 }
 NETWORK_UNSUPPORTED: dict[str, object] = {
     "memory": None,
-    "deterministic": False,
 }
 TOP: dict[str, Check] = {
     "max_steps": POSITIVE_INT,
@@ -147,9 +147,13 @@ ENGINE: dict[str, Check] = {
     "target_frame_rate": int_from(-1),
     "capture_frame_rate": int_from(0),
     "no_graphics": _bool,
+    "no_graphics_monitor": _bool,
 }
-ENGINE_UNSUPPORTED = ("no_graphics_monitor",)
-RUN_UNSUPPORTED = ("env_settings", "checkpoint_settings", "debug")
+ENGINE_UNSUPPORTED: tuple[str, ...] = ()
+RUN_UNSUPPORTED: tuple[str, ...] = ()
+# the run's own settings, as mlagents-learn reads them: the driver's options take and check
+# them (driver/options.py), so they pass through here unread
+RUN_SETTINGS = ("env_settings", "checkpoint_settings", "debug")
 RUN_KEYS = (
     "behaviors",
     "default_settings",

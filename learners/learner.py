@@ -47,6 +47,13 @@ class Algorithm(Protocol):
     def wanted(self) -> int | None: ...  # on-policy: steps missing before the next update
     def update(self, progress: float) -> dict[str, float]: ...
     def state_dict(self) -> dict[str, Any]: ...
+    def initialize(self, state: dict[str, Any]) -> None:
+        """Start from another run's networks (``--initialize-from``): its weights and
+        observation statistics, none of its steps, versions or optimizer state."""
+        self._published = None
+        for name, entry in state["behaviors"].items():
+            self._behavior(name, entry["spec"]).network.load_state_dict(entry["network"])
+
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
@@ -82,12 +89,14 @@ class CentralLearner:
         torch_threads: int | None = None,
         seed: int = 0,
         compute: Compute | None = None,
+        inference: bool = False,
     ) -> None:
         if torch_threads is not None:  # the Ray actor shares its node with Unity workers
             torch.set_num_threads(torch_threads)
         self.compute = compute or Compute()
         self.config = config
         self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)
+        self.inference = inference  # count the steps, train on none (CLI --inference)
         self.factory = policy_factory(config, seed)
         self.version = 0
         self.behaviors: dict[str, BehaviorState] = {}
@@ -118,6 +127,8 @@ class CentralLearner:
             state = self._behavior(behavior, segment.get_non_tensor(keys.SPEC))
             lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])
             state.steps += segment.batch_size[0]
+            if self.inference:
+                continue
             state.algorithm.add(segment, lag)
             if state.algorithm.ready():
                 self._update(behavior, state)
@@ -132,6 +143,8 @@ class CentralLearner:
         steps = {name: s.steps for name, s in self.behaviors.items()}
         if (left := steps_left(steps, self.config, self.max_steps)) == 0:
             return 0
+        if self.inference:
+            return None
         wants = [w for s in self.behaviors.values() if (w := s.algorithm.wanted()) is not None]
         if not wants:
             return None
@@ -210,6 +223,13 @@ class CentralLearner:
                 },
             }
         )
+
+    def initialize(self, state: dict[str, Any]) -> None:
+        """Start from another run's networks (``--initialize-from``): its weights and
+        observation statistics, none of its steps, versions or optimizer state."""
+        self._published = None
+        for name, entry in state["behaviors"].items():
+            self._behavior(name, entry["spec"]).network.load_state_dict(entry["network"])
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.version = int(state["version"])

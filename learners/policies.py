@@ -345,7 +345,8 @@ class TorchActor:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         tensors = {name: torch.from_numpy(value) for name, value in obs.items()}
         torch_mask = torch.from_numpy(mask) if mask is not None else None
-        continuous, discrete, log_prob = self.network.act(tensors, torch_mask)
+        deterministic = self.network.settings.deterministic
+        continuous, discrete, log_prob = self.network.act(tensors, torch_mask, deterministic)
         return continuous.numpy(), discrete.numpy(), log_prob.numpy()
 
 

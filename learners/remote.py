@@ -47,8 +47,9 @@ class LearnerHost:
         seed: int,
         device: str = "cpu",
         mixed_precision: bool = False,
+        inference: bool = False,
     ) -> None:
-        self.config, self.max_steps = config, max_steps
+        self.config, self.max_steps, self.inference = config, max_steps, inference
         self._learner: CentralLearner | None = None
         self._error: BaseException | None = None
         self._built = threading.Event()
@@ -59,7 +60,7 @@ class LearnerHost:
         self._early_duplicates = 0
         self._builder = threading.Thread(
             target=self._build,
-            args=(config, max_steps, torch_threads, seed, device, mixed_precision),
+            args=(config, max_steps, torch_threads, seed, device, mixed_precision, inference),
             daemon=True,
         )
         self._builder.start()
@@ -75,10 +76,9 @@ class LearnerHost:
             from learners.devices import Compute
             from learners.learner import CentralLearner
 
-            config, max_steps, torch_threads, seed, device, mixed_precision = args
-            learner = CentralLearner(
-                config, max_steps, torch_threads, seed, Compute.of(device, mixed_precision)
-            )
+            config, max_steps, torch_threads, seed, device, mixed_precision, inference = args
+            compute = Compute.of(device, mixed_precision)
+            learner = CentralLearner(config, max_steps, torch_threads, seed, compute, inference)
             learner.prepare()  # the algorithms' modules (torchrl) before the first data
             self._learner = learner
         except BaseException as error:  # raised by the next call that needs the learner
@@ -131,6 +131,8 @@ class LearnerHost:
         ``CentralLearner.wanted`` bounds it."""
         if (left := steps_left(self._early_steps, self.config, self.max_steps)) == 0:
             return 0
+        if self.inference:
+            return None
         wants = [
             on_policy_wanted(settings.hyperparameters.buffer_size, steps)
             for behavior, steps in self._early_steps.items()
@@ -166,6 +168,10 @@ class LearnerHost:
         with self._lock:
             self.learner.load_state_dict(state)
 
+    def initialize(self, state: dict[str, Any]) -> None:
+        with self._lock:
+            self.learner.initialize(state)
+
 
 def _behavior(segment: Segment | TensorDict) -> str:
     """A segment's behavior: a worker's ``Segment``, or a TensorDict (tests, benchmarks)."""
@@ -181,6 +187,7 @@ def learner_actor(
     seed: int = 0,
     device: str = "cpu",
     mixed_precision: bool = False,
+    inference: bool = False,
 ) -> Any:
     """Start the learner as a Ray actor (Ray imported here: the class itself needs none).
     ``device`` other than cpu: the actor asks Ray for one GPU (``learners.devices``'s
@@ -197,4 +204,4 @@ def learner_actor(
 
     remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
     remote = remote.options(num_cpus=num_cpus, num_gpus=0 if device == "cpu" else 1)
-    return remote.remote(config, max_steps, 1, seed, device, mixed_precision)
+    return remote.remote(config, max_steps, 1, seed, device, mixed_precision, inference)

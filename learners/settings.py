@@ -7,7 +7,9 @@ so the policy factory that workers unpickle, the learner and the driver all shar
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
 
 from batches.contracts import base_name
 
@@ -26,6 +28,9 @@ class NetworkSettings:
     # ML-Agents' image encoder (learners.encoders): simple, nature_cnn, resnet, match3 or
     # fully_connected; each ends in a dense layer to hidden_units.
     vis_encode_type: str = "simple"
+    # act with the Gaussian's mean and the likeliest discrete actions (ML-Agents' key; the
+    # CLI's --deterministic sets it for every behavior); it changes no weight
+    deterministic: bool = False
     # Not config keys: set by the learner's policy factory for SAC behaviors.
     tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
     conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter
@@ -86,6 +91,18 @@ class RunConfig:
     source: str = "<config>"
     torch_device: str | None = None  # torch_settings.device (None: --device, else auto)
     default_given: bool = False  # default_settings: in the file, for behaviors it does not name
+    # env_settings, checkpoint_settings and debug as the file gives them, for the driver
+    run_settings: Mapping[str, Any] = field(default_factory=dict)
+
+    def deterministic(self) -> RunConfig:
+        """Every behavior acting deterministically (the CLI's --deterministic)."""
+
+        def acting(settings: TrainerSettings) -> TrainerSettings:
+            network = replace(settings.network_settings, deterministic=True)
+            return replace(settings, network_settings=network)
+
+        behaviors = {name: acting(settings) for name, settings in self.behaviors.items()}
+        return replace(self, behaviors=MappingProxyType(behaviors), default=acting(self.default))
 
     def for_behavior(self, behavior: str) -> TrainerSettings:
         """Settings for ``behavior`` (``?team=`` ignored); ``default`` if not listed."""

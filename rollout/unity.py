@@ -96,6 +96,7 @@ class UnityConfig:
     num_areas: int = 1
     timeout_wait: int = 60
     no_graphics: bool = False  # Unity's -nographics (mlagents-learn's default: off)
+    no_graphics_monitor: bool = False  # worker 0 with graphics, the others without
     engine: EngineSettings = field(default_factory=EngineSettings)
     env_params: Mapping[str, float] = field(default_factory=dict)
     additional_args: tuple[str, ...] = ()

@@ -44,6 +44,7 @@ class RolloutWorker:
             unity,
             seed=unity.seed + 1000 * index,
             log_folder=f"{unity.log_folder}/worker-{index}" if unity.log_folder else None,
+            no_graphics=index != 0 if unity.no_graphics_monitor else unity.no_graphics,
         )
         allocator = PortAllocator(port_range, registry_dir)
         self.collector = Collector(unity, actor_factory, horizon, index, allocator)

@@ -187,6 +187,17 @@ def test_resume_with_another_network_names_the_setting_and_changes_nothing(with_
     assert "configuration.yaml" in message  # where the settings it was trained with are
 
 
+def test_initializing_from_a_run_of_another_network_names_the_setting(with_run):
+    config = yaml.safe_load((ROOT / "config/Basic.yaml").read_text())
+    config["behaviors"]["Basic"]["network_settings"]["num_layers"] = 2
+    (with_run / "deeper.yaml").write_text(yaml.safe_dump(config))
+    argv = ["train", *BASIC, "--config", "deeper.yaml", "--run-id", "new"]
+    argv += ["--initialize-from", "run"]
+    check_error(
+        with_run, argv, 2, "--initialize-from: Basic was trained with network_settings.num_layers 1"
+    )
+
+
 def test_resume_on_corrupt_checkpoints_names_the_file(with_run):
     for path in (with_run / "results/run/checkpoints").rglob("*.pt"):
         path.write_bytes(path.read_bytes()[:10])  # a kill mid-write of an unsafe writer

@@ -3,18 +3,14 @@ defaults and the checks all come from the declaration."""
 
 from __future__ import annotations
 
-import dataclasses
+import re
 
 import pytest
 
 from driver.cli import build_parser, main
-from driver.options import (
-    CollectOptions,
-    TrainingError,
-    TrainOptions,
-    flag,
-    from_arguments,
-)
+from driver.declaration import TrainingError, declared, flag, from_arguments, from_settings
+from driver.options import CollectOptions, TrainOptions
+from learners.config import parse_config
 
 
 @pytest.mark.parametrize(
@@ -25,28 +21,75 @@ def test_the_command_line_is_the_declaration(command, kind):
     else is: no second list of options to keep in step."""
     arguments = build_parser().parse_args([command])
     assert from_arguments(kind, arguments) == kind()
-    declared = {item.name for item in dataclasses.fields(kind)}
+    names = {item.name for item, _ in declared(kind)}
     parsed = set(vars(arguments)) - {"command", "func"}
-    assert parsed == declared
+    assert parsed == names
 
 
 def test_help_shows_each_option_with_its_help(capsys):
     with pytest.raises(SystemExit):
         main(["train", "--help"])
     text = " ".join(capsys.readouterr().out.split())
-    for item in dataclasses.fields(TrainOptions):
-        name = "--no-progress" if item.name == "progress" else flag(item.name)
+    flags = set(re.findall(r"--[a-z-]+", text))
+    for item, how in declared(TrainOptions):
+        name = how.negative or flag(item.name)
+        if how.hidden:  # mlagents-learn's deprecated and removed options, accepted
+            assert name not in flags
+            continue
         assert name in text
-        assert " ".join(item.metadata["option"].help.split()[:4]) in text
+        assert " ".join(how.help.split()[:4]) in text
 
 
 def test_values_reach_their_fields():
-    argv = "train --workers auto --max-steps 500 --torch-device cpu --no-progress"
-    argv += " --restarts-rate-limit-n 3 --max-workers 4"
-    arguments = build_parser().parse_args(argv.split())
-    options = from_arguments(TrainOptions, arguments)
+    argv = "train my.yaml --num-envs auto --max-steps 500 --torch-device cpu --no-progress"
+    argv += " --restarts-rate-limit-n 3 --max-workers 4 --load --env-args --level 3 -x"
+    options = from_arguments(TrainOptions, build_parser().parse_args(argv.split()))
     assert (options.workers, options.max_steps, options.device) == ("auto", 500, "cpu")
     assert options.progress is False and options.restarts.rate_limit_n == 3
+    assert options.config == "my.yaml" and options.resume  # --load: mlagents-learn's old name
+    assert options.env_args == ("--level", "3", "-x")
+    assert options.given == {
+        "config", "workers", "max_steps", "device", "progress", "restarts_rate_limit_n",
+        "max_workers", "resume", "env_args",
+    }  # fmt: skip
+
+
+def test_the_config_is_given_once():
+    with pytest.raises(TrainingError, match="--config: given twice, as trainer_config_path"):
+        from_arguments(
+            TrainOptions, build_parser().parse_args(["train", "a.yaml", "--config", "b.yaml"])
+        )
+
+
+RUN_LEVEL = {
+    "env_settings": {"num_envs": 3, "seed": 7, "base_port": 6000, "env_args": ["-a", "1"]},
+    "checkpoint_settings": {"run_id": "from-yaml", "force": True, "results_dir": "out"},
+    "debug": True,
+}
+
+
+def test_a_trainer_configs_run_level_sections_give_way_to_the_command_line():
+    """mlagents-learn's precedence: the command line, then the file, then the default."""
+    options = from_arguments(TrainOptions, build_parser().parse_args(["train", "--seed", "1"]))
+    merged = from_settings(options, RUN_LEVEL, "run.yaml")
+    assert (merged.workers, merged.seed, merged.base_port) == (3, 1, 6000)
+    assert merged.env_args == ("-a", "1") and merged.debug
+    assert (merged.run_id, merged.force, merged.results_dir) == ("from-yaml", True, "out")
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"env_settings": {"num_env": 3}}, "env_settings.num_env: unknown key; did you mean"),
+        ({"env_settings": {"num_envs": "many"}}, "env_settings.num_envs: expected int, got"),
+        ({"checkpoint_settings": {"force": "yes"}}, "checkpoint_settings.force: expected true"),
+        ({"env_settings": [1]}, "env_settings: expected a mapping"),
+    ],
+)
+def test_a_bad_run_level_key_is_one_line(settings, message):
+    with pytest.raises(TrainingError) as error:
+        from_settings(TrainOptions(), settings, "run.yaml")
+    assert str(error.value).startswith(f"run.yaml: {message}")
 
 
 @pytest.mark.parametrize(
@@ -88,9 +131,25 @@ def test_the_training_docs_list_every_option():
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[2] / "docs/training.md").read_text()
-    missing = [
-        name
-        for item in dataclasses.fields(TrainOptions)
-        if f"`{(name := item.metadata['option'].negative or flag(item.name))}`" not in text
-    ]
-    assert missing == []
+    names = [how.negative or flag(item.name) for item, how in declared(TrainOptions)]
+    assert [name for name in names if f"`{name}`" not in text] == []
+
+
+def test_mlagents_learns_engine_and_environment_options_reach_every_unity():
+    """The command line's engine options over the config's engine_settings, arguments for
+    the executable, the first instance alone with graphics, ports from --base-port."""
+    from pathlib import Path
+
+    from driver.options import TrainOptions
+    from driver.train import service_config, unity_config
+    from rollout.ports import PortRange
+
+    config = parse_config({"engine_settings": {"width": 64, "time_scale": 5, "no_graphics": True}})
+    options = TrainOptions(
+        time_scale=1.0, env_args=("-level", "3"), no_graphics_monitor=True, base_port=6000
+    )
+    unity = unity_config(options, config, Path("run"))
+    assert (unity.engine.width, unity.engine.time_scale, unity.engine.height) == (64, 1.0, 84)
+    assert unity.additional_args == ("-level", "3")
+    assert unity.no_graphics and unity.no_graphics_monitor
+    assert service_config(options, config, unity, False).port_range == PortRange(6000, 6099)

@@ -215,3 +215,29 @@ def test_workers_act_with_the_learners_initial_weights_and_ml_agents_initializat
     assert abs(head.std() * np.sqrt(128) / 0.2 - 1.0) < 0.15  # gain 0.2
     assert abs(state["value.weight"]).max() <= np.sqrt(6 / 129)  # xavier_uniform
     assert not state["trunk.0.bias"].any() and not state["log_std"].any()
+
+
+@pytest.mark.parametrize("squash", [False, True], ids=["ppo", "sac"])
+@pytest.mark.parametrize("sensors", [(VECTOR, GRID), (VECTOR, IMAGE)], ids=["numpy", "torch"])
+def test_deterministic_acting_takes_the_mean_and_the_likeliest_action(sensors, squash):
+    """network_settings.deterministic (the CLI's --deterministic), numpy or torch alike."""
+    spec = hybrid_spec(*sensors)
+    settings = NetworkSettings(deterministic=True, tanh_squash=squash, conditional_sigma=squash)
+    torch.manual_seed(0)
+    network = ActorCritic(spec, settings)
+    obs = observations(spec, 16)
+    mask = np.ones((16, 5), bool)
+    mask[:, 0] = False
+    first, second = rollout_actor(network, seed=1), rollout_actor(network, seed=2)
+    continuous, discrete, log_prob = first.act(obs, mask)
+    again = second.act(obs, mask)
+    for ours, theirs in zip((continuous, discrete, log_prob), again, strict=True):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-5)  # no draw at all
+    with torch.no_grad():
+        hidden = network.features({k: torch.from_numpy(v) for k, v in obs.items()})
+        mean, _ = network.mean_log_std(hidden)
+        logits = network.logits(hidden).masked_fill(~torch.from_numpy(mask), float("-inf"))
+    expected = torch.tanh(mean) if squash else mean
+    np.testing.assert_allclose(continuous, expected.numpy(), rtol=1e-4, atol=1e-5)
+    likeliest = [logits[:, :3].argmax(-1), logits[:, 3:].argmax(-1)]
+    np.testing.assert_array_equal(discrete, torch.stack(likeliest, -1).numpy())
