@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
+import json
 import os
 import shutil
 import subprocess
@@ -19,6 +20,9 @@ import pytest
 import yaml
 
 from driver import cli
+from driver.declaration import from_arguments
+from driver.options import TrainOptions
+from driver.run_dir import plan
 from tests.helpers import assert_run_gone
 
 pytestmark = pytest.mark.integration
@@ -198,6 +202,18 @@ def test_initializing_from_a_run_of_another_network_names_the_setting(with_run):
     )
 
 
+def test_and_initialized_from_a_fitting_run_it_plays_its_policy_in_inference(with_run):
+    """What the mistake above was about, done right: the run starts from the other's
+    networks (tests/learners/test_learner_modes.py checks the weights), trains on nothing
+    (version 0) and writes no checkpoint."""
+    argv = [*BASIC, "--run-id", "new", "--initialize-from", "run", "--inference"]
+    status, output = run(with_run, "train", *argv, "--max-steps", "600").split("\n", 1)
+    assert status == "0" and output.splitlines()[-1].endswith("no checkpoint"), output[-3000:]
+    assert not (with_run / "results/new/checkpoints").exists()
+    summary = json.loads((with_run / "results/new/summary.json").read_text())
+    assert summary["steps"] >= 600 and summary["version"] == 0 and summary["checkpoint"] is None
+
+
 def test_resume_on_corrupt_checkpoints_names_the_file(with_run):
     for path in (with_run / "results/run/checkpoints").rglob("*.pt"):
         path.write_bytes(path.read_bytes()[:10])  # a kill mid-write of an unsafe writer
@@ -237,8 +253,9 @@ def test_a_build_that_exits_at_once_leaves_nothing_that_blocks_a_retry(fresh):
     argv = ["train", *BASIC, "--env", str(build)]
     message = check_error(fresh, argv, 1, "nothing was trained and no checkpoint written")
     assert "Player-0.log" not in message  # it died before writing one
-    again = check_error(fresh, argv, 1, "nothing was trained")  # not "already holds a run"
-    assert again == message
+    with pytest.MonkeyPatch.context() as patch:  # the same command again passes its checks
+        patch.chdir(fresh)
+        plan(from_arguments(TrainOptions, cli.build_parser().parse_args(argv)))
 
 
 def test_a_build_that_never_connects_is_one_line(fresh):

@@ -130,24 +130,3 @@ def test_a_killed_learner_comes_back_from_the_checkpoint_and_the_run_goes_on(tmp
     assert summary["steps"] >= 40000
     assert summary["version"] > at_kill["version"]
     assert_run_gone(marker)
-
-
-@pytest.mark.integration
-def test_a_run_initialized_from_another_plays_its_policy_in_inference(tmp_path):
-    """mlagents-learn's --initialize-from and --inference: the second run starts from the
-    first's networks (tests/learners/test_learner_modes.py checks the weights), trains on
-    nothing (version 0) and writes no checkpoint."""
-    write_config(tmp_path)
-    for run_id, extra in (("first", ()), ("second", ("--initialize-from", "first", "--inference"))):
-        marker = uuid.uuid4().hex
-        driver = start_train(tmp_path, marker, "--run-id", run_id, "--max-steps", "3000", *extra)
-        try:
-            output = driver.communicate(timeout=300)[0]
-        finally:
-            kill_run(driver)
-        assert_run_gone(marker, 30)
-        assert driver.returncode == 0, output[-3000:]
-    assert "no checkpoint" in output.splitlines()[-1]
-    assert not (tmp_path / "second" / "checkpoints").exists()
-    summary = json.loads((tmp_path / "second" / "summary.json").read_text())
-    assert summary["steps"] >= 3000 and summary["version"] == 0 and summary["checkpoint"] is None

@@ -301,7 +301,7 @@ def test_gpu_rayjob_entrypoint_is_the_cpu_one_with_device_cuda():
     assert gpu.device == "cuda"  # no GPU in the cluster: one line before any worker starts
     assert cpu.device != "cuda"
     assert gpu.run_id != cpu.run_id  # both runs can share the results volume
-    ignored = {"device", "run_id"}
+    ignored = {"device", "run_id", "given"}  # given: which flags the command line had
     assert {k: v for k, v in vars(gpu).items() if k not in ignored} == {
         k: v for k, v in vars(cpu).items() if k not in ignored
     }

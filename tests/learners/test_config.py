@@ -343,8 +343,6 @@ torch_settings: {device: cpu}
     with caplog.at_level(logging.WARNING, logger="learners.config"):
         config = parse(text)
     assert set(config.unsupported) == {
-        "env_settings",
-        "checkpoint_settings",
         "default_settings.threaded",
         "behaviors.Pyramids.init_path",
         "behaviors.Pyramids.self_play",
@@ -363,6 +361,7 @@ torch_settings: {device: cpu}
     assert dict(config.engine) == {"time_scale": 20.0, "width": 84, "no_graphics": True}
     assert config.for_behavior("Pyramids").gamma == 0.99
     assert config.for_behavior("Pyramids").network_settings.vis_encode_type == "resnet"
+    assert config.run_settings["env_settings"] == {"num_envs": 4}  # the driver's options
 
 
 @pytest.mark.parametrize("kind", ["simple", "nature_cnn", "resnet", "match3", "fully_connected"])
