@@ -61,11 +61,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
     import logging
 
-    from driver.run_dir import plan
+    from driver.run_dir import open_run, plan
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         planned = plan(from_arguments(TrainOptions, args))  # needs neither Ray nor torch
+        if planned.loads_checkpoints:  # torch, to check them against the config
+            planned = dataclasses.replace(planned, start=open_run(planned))
     except TrainingError as error:
         return _error(error)
     options = dataclasses.replace(

@@ -39,6 +39,14 @@ class Plan:
     config: RunConfig
     run_dir: Path
     resume: bool  # from the run's checkpoints
+    start: Start | None = None  # the run opened (``open_run``), when it was before Ray
+
+    @property
+    def loads_checkpoints(self) -> bool:
+        """Whether opening the run reads checkpoints (torch), to check them against the
+        config: the command line does that before it starts Ray, so a mismatch is one
+        line before anything runs."""
+        return self.resume or self.options.initialize_from is not None
 
 
 def load_run_config(options: TrainOptions) -> RunConfig:

@@ -197,7 +197,7 @@ def train(
     ``planned``: ``run_dir.plan(options)``, when the caller checked it before Ray."""
     planned = planned or plan(options)
     options = planned.options  # with what the trainer config's run-level sections give
-    start = open_run(planned)
+    start = planned.start or open_run(planned)
     config, run_dir = planned.config, planned.run_dir
     unity = unity_config(options, config, run_dir)
     started_ray = False

@@ -30,7 +30,7 @@ from collections.abc import Callable
 from typing import Any
 
 import ray
-from ray.exceptions import ObjectLostError, RayActorError, RayError
+from ray.exceptions import ObjectLostError, RayActorError, RayError, RayTaskError
 
 from batches.contracts import ActorFactory
 from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, steps_of
@@ -277,6 +277,8 @@ class RolloutService(WorkerSupervision):
                 raise LearnerDied(last_line(error)) from None
             self._submits += done  # booked as lost below
             done, answers = [], []
+        except RayTaskError as error:  # the learner refused what it was given, and lives on
+            raise RolloutError(f"the learner: {last_line(error)}") from None
         except ObjectLostError:  # a collect's data died with its worker's node on the way
             done, answers = self._answers_left(done)
         for ref in self._submits if lost else []:

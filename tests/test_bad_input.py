@@ -179,7 +179,7 @@ def with_run(fresh, trained):
 
 
 def test_an_existing_run_is_not_overwritten(with_run):
-    check_error(with_run, ["train", *BASIC], 2, "already holds a run: pass --resume")
+    check_error(with_run, ["train", *BASIC], 2, "already holds a run: pass --resume", True)
 
 
 def test_resume_with_another_network_names_the_setting_and_changes_nothing(with_run):
@@ -187,7 +187,7 @@ def test_resume_with_another_network_names_the_setting_and_changes_nothing(with_
     config["behaviors"]["Basic"]["network_settings"]["hidden_units"] = 64
     (with_run / "wider.yaml").write_text(yaml.safe_dump(config))
     argv = ["train", *BASIC, "--resume", "--config", "wider.yaml"]
-    message = check_error(with_run, argv, 2, "network_settings.hidden_units 20, the config")
+    message = check_error(with_run, argv, 2, "network_settings.hidden_units 20, the config", True)
     assert "configuration.yaml" in message  # where the settings it was trained with are
 
 
@@ -197,9 +197,8 @@ def test_initializing_from_a_run_of_another_network_names_the_setting(with_run):
     (with_run / "deeper.yaml").write_text(yaml.safe_dump(config))
     argv = ["train", *BASIC, "--config", "deeper.yaml", "--run-id", "new"]
     argv += ["--initialize-from", "run"]
-    check_error(
-        with_run, argv, 2, "--initialize-from: Basic was trained with network_settings.num_layers 1"
-    )
+    fragment = "--initialize-from: Basic was trained with network_settings.num_layers 1"
+    check_error(with_run, argv, 2, fragment, before_ray=True)
 
 
 def test_and_initialized_from_a_fitting_run_it_plays_its_policy_in_inference(with_run):
@@ -217,7 +216,7 @@ def test_and_initialized_from_a_fitting_run_it_plays_its_policy_in_inference(wit
 def test_resume_on_corrupt_checkpoints_names_the_file(with_run):
     for path in (with_run / "results/run/checkpoints").rglob("*.pt"):
         path.write_bytes(path.read_bytes()[:10])  # a kill mid-write of an unsafe writer
-    check_error(with_run, ["train", *BASIC, "--resume"], 2, "no readable checkpoint")
+    check_error(with_run, ["train", *BASIC, "--resume"], 2, "no readable checkpoint", True)
 
 
 def test_resume_falls_back_to_the_newest_intact_checkpoint_and_says_so(with_run):
@@ -271,3 +270,11 @@ def test_a_port_range_too_small_names_what_holds_its_ports(fresh):
     fragment = "no free port in 24990-24990 (1 ports): 1 leased"
     message = check_error(fresh, argv, 1, fragment, UNITY_ROLLOUT_PORT_RANGE="24990-24990")
     assert "0 in quarantine" in message
+
+
+def test_a_behavior_the_learner_cannot_train_is_one_line(fresh):
+    """SAC on hybrid actions (GridFoodCollector's), which it does not train yet: the
+    learner's refusal ends the run in one line, not a traceback."""
+    (fresh / "sac.yaml").write_text("behaviors:\n  GridFoodCollector:\n    trainer_type: sac\n")
+    argv = ["train", *BASIC, "--env", "unitysim:GridFoodCollector", "--config", "sac.yaml"]
+    check_error(fresh, argv, 1, "the learner: ValueError: SAC supports continuous actions")

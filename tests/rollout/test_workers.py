@@ -120,9 +120,9 @@ def test_grid_food_collector_hybrid_actions(ray_session, registry):
 def test_unity_stats_reach_the_service(ray_session, registry):
     """unitysim's Echo records two statistics per step through the stats side channel."""
     learner = ray_session.remote(CountingLearner).remote()
-    config = service_config(UnityConfig("unitysim:Echo"), registry, workers=2)
+    config = service_config(UnityConfig("unitysim:Echo"), registry, workers=1)
     with RolloutService(config, actor_factory, learner) as service:
-        service.run(agent_steps=2000)
+        service.run(agent_steps=300)
         stats = service.metrics.drain_unity_stats()
     assert stats["Echo/Episodes Ended"].method == StatsAggregationMethod.SUM
     assert stats["Echo/Episodes Ended"].value > 0
