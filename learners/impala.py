@@ -23,10 +23,15 @@ from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
 from batches import keys
 from learners.devices import Compute
-from learners.modules import FLAT_ACTION, obs_keys, probabilistic_actor, value_operator
+from learners.modules import (
+    FLAT_ACTION,
+    add_flat_action,
+    obs_keys,
+    probabilistic_actor,
+    value_operator,
+)
 from learners.policies import ActorCritic
 from learners.ppo import (
-    SegmentBuffer,
     actor_critic_report,
     gradient_step,
     means,
@@ -36,6 +41,33 @@ from learners.schedules import decay
 
 if TYPE_CHECKING:
     from learners.settings import TrainerSettings
+
+
+class SegmentBuffer:
+    """Whole packed segments until more than ``buffer_size`` steps are there: V-trace runs
+    along each trajectory, and every epoch recomputes it under the newest weights."""
+
+    def __init__(self, buffer_size: int, compute: Compute | None = None) -> None:
+        self.buffer_size = buffer_size
+        self.compute = compute or Compute()
+        self.segments: list[TensorDict] = []
+        self.steps = 0
+
+    def add(self, segment: TensorDict) -> int:
+        self.segments.append(segment.exclude(*keys.METADATA))
+        self.steps += segment.batch_size[0]
+        return segment.batch_size[0]
+
+    def ready(self) -> bool:
+        """More than ``buffer_size`` steps, as ML-Agents' trainers wait for."""
+        return self.steps > self.buffer_size
+
+    def take(self, network: ActorCritic, reward_strength: float) -> TensorDict:
+        batch = self.compute.to_device(torch.cat(self.segments, dim=0))
+        self.segments, self.steps = [], 0
+        network.update_normalization(dict(batch[keys.OBS].items()))
+        batch[keys.NEXT, keys.REWARD] = batch[keys.NEXT, keys.REWARD] * reward_strength
+        return add_flat_action(batch)
 
 
 class IMPALA:

@@ -31,7 +31,6 @@ import numpy as np
 import torch
 from mlagents_envs.base_env import BehaviorSpec
 from torch import nn
-from torch.distributions import Categorical, Normal
 
 from learners.acting import (
     ACTION_CLIP,
@@ -49,6 +48,7 @@ from learners.settings import NetworkSettings
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)
+NORM_CHUNK = 2**24  # numbers per float64 chunk of a normalization update (128 MB)
 SQUASH_EPS = 1e-6  # stored squashed actions are clamped to +-(1 - eps) before atanh
 
 
@@ -77,10 +77,14 @@ class RunningNorm(nn.Module):
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
-        """Merge a batch ``[..., size]`` into the statistics (parallel Welford)."""
-        x = x.reshape(-1, self.mean.shape[0]).to(torch.float64)
-        if not len(x):
-            return
+        """Merge a batch ``[..., size]`` into the statistics (parallel Welford), in float64
+        chunks of at most ``NORM_CHUNK`` numbers, so a large batch is never copied whole."""
+        x = x.reshape(-1, self.mean.shape[0])
+        rows = max(1, NORM_CHUNK // self.mean.shape[0])
+        for start in range(0, len(x), rows):
+            self._merge(x[start : start + rows].to(torch.float64))
+
+    def _merge(self, x: torch.Tensor) -> None:
         n, mean, var = float(len(x)), x.mean(0), x.var(0, unbiased=False)
         count = float(self.count)
         total = count + n
@@ -225,32 +229,6 @@ class ActorCritic(nn.Module):
         assert self.log_std is not None
         return mean, self.log_std.expand_as(mean)
 
-    def distributions(
-        self, hidden: torch.Tensor, mask: torch.Tensor | None
-    ) -> tuple[Normal | None, list[Categorical]]:
-        """The pre-squash Gaussian (``tanh_squash``: actions are tanh of its samples) and
-        one categorical per discrete branch."""
-        normal = None
-        if self.mean is not None:
-            mean, log_std = self.mean_log_std(hidden)
-            # validate_args=False: argument checks cost more than the tiny MLP per step
-            normal = Normal(mean, log_std.exp(), validate_args=False)
-        return normal, self.branch_distributions(hidden, mask)
-
-    def branch_distributions(
-        self, hidden: torch.Tensor, mask: torch.Tensor | None
-    ) -> list[Categorical]:
-        """One categorical per discrete branch; masked actions (mask False) get probability 0."""
-        if self.logits is None:
-            return []
-        logits = torch.split(self.logits(hidden), self.branches, dim=-1)
-        if mask is None:
-            return [Categorical(logits=lg, validate_args=False) for lg in logits]
-        from torchrl.modules import MaskedCategorical  # learner only: workers never import torchrl
-
-        masks = torch.split(mask, self.branches, dim=-1)
-        return [MaskedCategorical(logits=lg, mask=m) for lg, m in zip(logits, masks, strict=True)]
-
     @torch.no_grad()
     def act(
         self,
@@ -303,27 +281,39 @@ class ActorCritic(nn.Module):
         mask: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(log-probs [..., c + branches] as ``act`` gives them, entropy, value) of given
-        actions under the current weights (what PPO's loss needs); batch dims are kept."""
+        actions under the current weights (what PPO's loss needs); batch dims are kept.
+        The densities are written out (the Gaussian's, and each branch's masked softmax):
+        building ``torch.distributions`` objects cost more than the network per minibatch."""
         encoded = self.encode(obs)  # once for both trunks: images cost the most here
         hidden = self.trunk(encoded)
-        normal, branches = self.distributions(hidden, mask)
         lead = hidden.shape[:-1]
         log_probs = [torch.zeros(*lead, 0, device=hidden.device)]
         entropy = torch.zeros(lead, device=hidden.device)
-        if normal is not None and continuous is not None:
+        if self.mean is not None and continuous is not None:
+            mean, log_std = self.mean_log_std(hidden)
+            u = continuous
             if self.settings.tanh_squash:  # invert the squash on the stored tanh(u)
                 bound = 1.0 - SQUASH_EPS
                 u = torch.atanh(continuous.clamp(-bound, bound))
-                log_probs.append(normal.log_prob(u) - tanh_log_det(u))
-            else:
-                log_probs.append(normal.log_prob(continuous))
+            gaussian = -0.5 * ((u - mean) * torch.exp(-log_std)).square() - log_std - _HALF_LOG_2PI
+            if self.settings.tanh_squash:
+                gaussian = gaussian - tanh_log_det(u)
+            log_probs.append(gaussian)
             # ML-Agents' measure, which beta weighs: the mean over dimensions (squashed:
             # the pre-squash Gaussian's, which has a closed form; ML-Agents does the same)
-            entropy = entropy + normal.entropy().mean(-1)
-        for index, dist in enumerate(branches):
-            assert discrete is not None
-            log_probs.append(dist.log_prob(discrete[..., index]).unsqueeze(-1))
-            entropy = entropy + dist.entropy()
+            entropy = entropy + (0.5 + _HALF_LOG_2PI + log_std).mean(-1)
+        if self.logits is not None and discrete is not None:
+            logits = self.logits(hidden)
+            if mask is not None:  # masked actions: probability 0
+                logits = logits.masked_fill(~mask, float("-inf"))
+            offset = 0
+            for index, size in enumerate(self.branches):
+                branch = torch.log_softmax(logits[..., offset : offset + size], dim=-1)
+                offset += size
+                log_probs.append(branch.gather(-1, discrete[..., index : index + 1]))
+                # masked entries add 0 (and no NaN gradient: 0 * -inf never happens)
+                finite = torch.where(branch.isfinite(), branch, 0.0)
+                entropy = entropy - (branch.exp() * finite).sum(-1)
         return torch.cat(log_probs, dim=-1), entropy, self.value_of(encoded)
 
 

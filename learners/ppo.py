@@ -1,13 +1,16 @@
-"""PPO for one behavior, as mlagents-learn runs it, on torchrl's ``GAE``.
+"""PPO for one behavior, as mlagents-learn runs it, on torchrl's vectorized GAE.
 
 Reads top to bottom like one iteration of the algorithm, as mlagents-learn runs it:
-segments arrive (``add``) and wait in a buffer until more than ``buffer_size`` steps are
-there; ``update`` folds their observations into the running normalization, computes GAE
-advantages along each packed trajectory (torchrl's estimator, which stops at ``done``
-and bootstraps from the next observation unless ``terminated``), normalizes the
-advantages over the whole buffer, and runs ``num_epoch`` passes of shuffled minibatches
-of ``batch_size`` (the remainder left out) through ``loss``. Learning rate, epsilon
-and beta decay linearly over ``max_steps`` to 1e-10, 0.1 and 1e-5, as ML-Agents'
+segments arrive (``add``) and are written into the trajectory store
+(``learners/trajectory_store.py``: preallocated on the learner's device, each observation
+once) until more than ``buffer_size`` steps are there; ``update`` folds their observations
+into the running normalization, computes GAE advantages along each packed trajectory
+(torchrl's ``vec_generalized_advantage_estimate``: ``done`` stops the trace, the
+bootstrap is the next row's value, or at a truncated end its kept next observation's, and
+0 where ``terminated``), normalizes the advantages over the whole buffer, and runs
+``num_epoch`` passes of shuffled minibatches of ``batch_size`` (the remainder left out)
+through ``loss``, each minibatch one gather per field from the store. Learning rate,
+epsilon and beta decay linearly over ``max_steps`` to 1e-10, 0.1 and 1e-5, as ML-Agents'
 do (``*_schedule: constant`` keeps them). No gradient clipping, as in ML-Agents.
 
 The loss is ML-Agents', written out rather than torchrl's ``ClipPPOLoss``, because
@@ -19,11 +22,6 @@ in effect: its code clips the value around the old estimate, but the old estimat
 reads is the return (``RewardSignalUtil.value_estimates_key`` names the returns' buffer
 field), so the clip never binds. Clipping for real cost samples: 3DBall reached 90 at
 a median 138k steps against 114k without (docs/benchmarks.md).
-
-The buffer (``SegmentBuffer``, which IMPALA shares) keeps whole packed segments, since the
-estimator runs along each trajectory, and hands them over as one ``[N]`` batch:
-observations folded into the running normalization, rewards scaled by the extrinsic
-signal's strength, actions joined into the flat action the torchrl actor scores.
 
 Policy lag: workers act with slightly old weights. The surrogate's ratio is taken
 against the log-probability stored with each step (the policy that really acted), which
@@ -39,57 +37,21 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.objectives.value import GAE
+from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
-from batches import keys
 from learners.counters import on_policy_wanted
 from learners.devices import Compute
-from learners.modules import add_flat_action, value_operator
 from learners.policies import ActorCritic
 from learners.schedules import BETA_END, EPSILON_END, decay
+from learners.trajectory_store import Rows, TrajectoryStore
 
 if TYPE_CHECKING:
     from learners.settings import TrainerSettings
 
-
-# ---- the buffer of segments waiting for the next update (IMPALA's too) ---------------------
-
-TRAIN = "train"  # bool per step: counts in the loss (False: context for the estimator only)
+VALUE_CHUNK_BYTES = 256 * 2**20
 
 
-class SegmentBuffer:
-    def __init__(self, buffer_size: int, compute: Compute | None = None) -> None:
-        self.buffer_size = buffer_size
-        self.compute = compute or Compute()
-        self.segments: list[TensorDict] = []
-        self.steps = 0
-
-    def add(self, segment: TensorDict, keep: torch.Tensor | None = None) -> int:
-        """Buffer a segment; ``keep`` (per step) narrows which steps train."""
-        segment = segment.exclude(*keys.METADATA)
-        if keep is None:
-            keep = torch.ones_like(segment[keys.POLICY_VERSION], dtype=torch.bool)
-        segment[TRAIN] = keep
-        steps = int(keep.sum())
-        if steps:
-            self.segments.append(segment)
-            self.steps += steps
-        return steps
-
-    def ready(self) -> bool:
-        """More than ``buffer_size`` steps, as ML-Agents' trainers wait for."""
-        return self.steps > self.buffer_size
-
-    def wanted(self) -> int:
-        return on_policy_wanted(self.buffer_size, self.steps)
-
-    def take(self, network: ActorCritic, reward_strength: float) -> TensorDict:
-        batch = self.compute.to_device(torch.cat(self.segments, dim=0))
-        self.segments, self.steps = [], 0
-        train, obs = batch[TRAIN], batch[keys.OBS]
-        network.update_normalization({n: obs[n][train] for n in obs.keys()})  # noqa: SIM118
-        batch[keys.NEXT, keys.REWARD] = batch[keys.NEXT, keys.REWARD] * reward_strength
-        return add_flat_action(batch)
+# ---- pieces IMPALA shares -------------------------------------------------------------------
 
 
 def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
@@ -149,17 +111,11 @@ class Steps:
     value_target: torch.Tensor  # [N]
 
     @classmethod
-    def of(cls, steps: TensorDict) -> Steps:
-        action = steps[keys.ACTION]
+    def of(cls, rows: Rows, advantage: torch.Tensor, value_target: torch.Tensor) -> Steps:
         return cls(
-            obs=dict(steps[keys.OBS].items()),
-            continuous=action.get(keys.CONTINUOUS, None),
-            discrete=action.get(keys.DISCRETE, None),
-            mask=steps.get(keys.ACTION_MASK, None),
-            log_prob=steps[keys.LOG_PROB],
-            advantage=steps["advantage"].squeeze(-1),
-            value_target=steps["value_target"].squeeze(-1),
-        )
+            rows.obs, rows.continuous, rows.discrete, rows.mask, rows.log_prob, advantage,
+            value_target,
+        )  # fmt: skip
 
     def __getitem__(self, index: torch.Tensor) -> Steps:
         def pick(tensor: torch.Tensor | None) -> torch.Tensor | None:
@@ -183,42 +139,38 @@ class PPO:
         self.network, self.settings = network, settings
         self.compute = compute or Compute()
         h = settings.hyperparameters
-        self.advantage = GAE(
-            gamma=settings.gamma,
-            lmbda=h.lambd,
-            value_network=value_operator(network),
-            average_gae=False,
-        )
         self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate, fused=True)
-        self.buffer = SegmentBuffer(h.buffer_size, self.compute)
+        self.store = TrajectoryStore(h.buffer_size + 1, self.compute.torch_device)
         self.stale_steps = 0
 
     # --- data in ------------------------------------------------------------------------
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
-        """Buffer a packed segment (``lag``: per step, updates of this behavior since the
+        """Store a packed segment (``lag``: per step, updates of this behavior since the
         weights that acted); returns the steps that will count in the loss."""
         fresh = lag <= self.settings.hyperparameters.max_policy_lag
         self.stale_steps += int((~fresh).sum())
-        return self.buffer.add(segment, keep=fresh)
+        return self.store.add(segment, keep=fresh)
 
     def ready(self) -> bool:
-        return self.buffer.ready()
+        """More than ``buffer_size`` steps, as ML-Agents' trainers wait for."""
+        return self.store.train_steps > self.settings.hyperparameters.buffer_size
 
     def wanted(self) -> int | None:
-        return self.buffer.wanted()
+        return on_policy_wanted(self.settings.hyperparameters.buffer_size, self.store.train_steps)
 
     # --- the update ---------------------------------------------------------------------
 
     def update(self, progress: float) -> dict[str, float]:
-        """One PPO iteration on everything buffered; ``progress`` in [0, 1] drives schedules."""
+        """One PPO iteration on everything stored; ``progress`` in [0, 1] drives schedules."""
         h = self.settings.hyperparameters
-        batch = self.buffer.take(self.network, self.settings.reward_strength)
+        rows = self.store.take()
+        train = rows.train.nonzero().squeeze(-1)  # the steps that count in the loss
+        self.network.update_normalization({n: o[train] for n, o in rows.obs.items()})
         with torch.no_grad():
-            self.advantage(batch)
-        steps = batch[batch[TRAIN]]  # the steps that train, each with advantage and target
-        advantage = steps["advantage"]
-        steps["advantage"] = (advantage - advantage.mean()) / (advantage.std() + 1e-10)
+            value, advantage, value_target = self.estimate(rows)
+        trained = advantage[train]
+        advantage = (advantage - trained.mean()) / (trained.std() + 1e-10)
 
         schedule = h.learning_rate_schedule
         lr = decay(h.learning_rate, progress, schedule)
@@ -226,9 +178,9 @@ class PPO:
         beta = decay(h.beta, progress, h.beta_schedule or schedule, BETA_END)
         set_learning_rate(self.optimizer, lr)
         totals: dict[str, float] = {}
-        data = Steps.of(steps)
+        data = Steps.of(rows, advantage, value_target)
         for _ in range(h.num_epoch):
-            order = torch.randperm(len(data.log_prob), device=data.log_prob.device)
+            order = train[torch.randperm(len(train), device=train.device)]
             for index in order.split(h.batch_size):
                 if len(index) == h.batch_size:
                     losses = self.loss(data[index], epsilon, beta)
@@ -239,10 +191,44 @@ class PPO:
             "Policy/Epsilon": epsilon,
             "Policy/Clip Fraction": mean.get("clip_fraction", 0.0),
             "Policy/Approx KL": mean.get("kl_approx", 0.0),
-            "Policy/Extrinsic Value Estimate": float(steps["state_value"].mean()),
+            "Policy/Extrinsic Value Estimate": float(value[train].mean()),
             "Policy/Stale Steps Dropped": float(self.stale_steps),
-            "Policy/Samples": float(len(steps)),
+            "Policy/Samples": float(len(train)),
         }
+
+    def estimate(self, rows: Rows) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(value, advantage, value target) per row: GAE along each packed trajectory
+        (torchrl's vectorized estimator), which stops at ``done`` and bootstraps from the
+        next observation unless ``terminated``; a step's next value is the next row's,
+        except at a truncated end, where it is its kept next observation's."""
+        value = self.values(rows.obs)
+        next_value = torch.zeros_like(value)
+        next_value[:-1] = value[1:]
+        next_value[rows.end_rows] = self.values(rows.end_obs)
+        reward = rows.reward * self.settings.reward_strength
+        advantage, target = vec_generalized_advantage_estimate(
+            self.settings.gamma,
+            self.settings.hyperparameters.lambd,
+            value.unsqueeze(-1),
+            next_value.unsqueeze(-1),
+            reward.unsqueeze(-1),
+            rows.done.unsqueeze(-1),
+            rows.terminated.unsqueeze(-1),
+            time_dim=-2,
+        )
+        return value, advantage.squeeze(-1), target.squeeze(-1)
+
+    def values(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """V of many rows, in chunks of about ``VALUE_CHUNK_BYTES`` of float input, so a
+        large observation is never converted whole."""
+        rows = len(next(iter(obs.values())))
+        width = sum(o[0].numel() for o in obs.values()) * 4 if rows else 1
+        chunk = max(1, VALUE_CHUNK_BYTES // max(width, 1))
+        parts = [
+            self.network.state_value({n: o[i : i + chunk] for n, o in obs.items()})
+            for i in range(0, rows, chunk)
+        ]
+        return torch.cat(parts) if parts else torch.zeros(0, device=self.compute.torch_device)
 
     def loss(self, steps: Steps, epsilon: float, beta: float) -> dict[str, torch.Tensor]:
         """ML-Agents' PPO loss on a minibatch: per-component clipped surrogate, squared

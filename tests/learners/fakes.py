@@ -34,7 +34,8 @@ def segment(
 ) -> TensorDict:
     """Random but well-formed packed segment of ``rows`` trajectories of ``steps`` steps
     each, every one cut at its last step (``truncated``, as at a horizon cut), no episode
-    end, every action allowed."""
+    end, every action allowed. Within a trajectory a step's next observation is the next
+    step's observation, as workers pack them."""
     torch.manual_seed(seed)
     n = rows * steps
     batch = step_spec(spec).expand(n).rand()
@@ -43,6 +44,9 @@ def segment(
     batch[keys.NEXT, keys.DONE] = cut
     batch[keys.NEXT, keys.TRUNCATED] = cut.clone()
     batch[keys.NEXT, keys.TERMINATED] = torch.zeros(n, 1, dtype=torch.bool)
+    within = ~cut[:-1, 0]
+    for name, obs in batch[keys.OBS].items():
+        batch[keys.NEXT, keys.OBS, name][:-1][within] = obs[1:][within]
     if spec.action_spec.discrete_branches:
         batch[keys.ACTION_MASK] = torch.ones_like(batch[keys.ACTION_MASK])
     batch[keys.POLICY_VERSION] = torch.zeros(n, dtype=torch.int64)

@@ -81,13 +81,11 @@ def test_gae_matches_a_hand_computed_case(end, expected):
     # A1 = d1 (the end cuts the trace); A0 = d0 + .9*.8*A1. Step 2 starts a new trajectory.
     spec = vector_spec(branches=(2,))
     ppo = PPO(constant_value_network(spec), settings(lambd=0.8))
-    row = one_row(spec, [1.0, 0.0, 2.0], **{end: [1]})
+    ppo.store.add(one_row(spec, [1.0, 0.0, 2.0], **{end: [1]}))
     with torch.no_grad():
-        ppo.advantage(row)
-    assert row["advantage"].view(-1).tolist() == pytest.approx(expected, abs=1e-5)
-    assert row["value_target"].view(-1).tolist() == pytest.approx(
-        [a + 0.5 for a in expected], abs=1e-5
-    )
+        _, advantage, value_target = ppo.estimate(ppo.store.take())
+    assert advantage.tolist() == pytest.approx(expected, abs=1e-5)
+    assert value_target.tolist() == pytest.approx([a + 0.5 for a in expected], abs=1e-5)
 
 
 def test_vtrace_matches_a_hand_computed_case():
@@ -117,8 +115,11 @@ def test_losses_go_down_on_a_fixed_batch(trainer, actions):
         network, settings(trainer, batch_size=64, buffer_size=64, learning_rate=3e-3)
     )
     batch = on_policy(network, segment(spec, 8, 16, seed=1))
-    # rewards that depend on the first observation: a learnable value function
+    # one-step episodes whose reward depends on the observation: a learnable value function
     batch[keys.NEXT, keys.REWARD] = batch[keys.OBS, "vector"][..., :1] * 2
+    ends = torch.ones(8 * 16, 1, dtype=torch.bool)
+    batch[keys.NEXT, keys.DONE], batch[keys.NEXT, keys.TERMINATED] = ends, ends.clone()
+    batch[keys.NEXT, keys.TRUNCATED] = torch.zeros_like(ends)
     reports = []
     for _ in range(30 if trainer == "ppo" else 90):  # IMPALA: 1 epoch, PPO: 3
         algorithm.add(batch.clone(), torch.zeros(8 * 16, dtype=torch.int64))
@@ -184,9 +185,9 @@ def test_ppo_clips_each_action_component_not_the_value_as_mlagents_learn():
     now = torch.tensor([-0.5 * math.log(2 * math.pi)] * 2 + [math.log(0.5)])  # current log-probs
     # step 0: ratios (1.5, 1, 0.5) at advantage +1; step 1: ratios (1, 1, 1) at advantage -1
     steps[keys.LOG_PROB] = torch.stack([now - torch.log(torch.tensor([1.5, 1.0, 0.5])), now])
-    steps["advantage"] = torch.tensor([[1.0], [-1.0]])
-    steps["value_target"] = torch.tensor([[2.0], [0.0]])  # V is 1.0
-    losses = ppo.loss(Steps.of(steps), epsilon=0.2, beta=0.0)
+    ppo.store.add(steps)
+    advantage, value_target = torch.tensor([1.0, -1.0]), torch.tensor([2.0, 0.0])  # V is 1.0
+    losses = ppo.loss(Steps.of(ppo.store.take(), advantage, value_target), epsilon=0.2, beta=0.0)
     # step 0: mean(min(1.5, 1.2), 1, 0.5) = 0.9 (the joint ratio 0.75 would give 0.75);
     # step 1: -1 for each component
     assert float(losses["loss_objective"].detach()) == pytest.approx(-(0.9 - 1.0) / 2)
@@ -200,7 +201,7 @@ def test_ppo_drops_steps_older_than_max_policy_lag():
     ppo = PPO(ActorCritic(spec), settings(max_policy_lag=2, batch_size=8, buffer_size=16))
     lag = torch.tensor([0, 1, 2, 3, 4, 5, 0, 0])
     assert ppo.add(segment(spec, 1, 8), lag) == 5
-    assert ppo.stale_steps == 3 and ppo.buffer.steps == 5 and not ppo.ready()
+    assert ppo.stale_steps == 3 and ppo.store.train_steps == 5 and not ppo.ready()
 
 
 def test_policy_lag_counts_only_the_behaviors_own_updates():

@@ -241,3 +241,43 @@ def test_deterministic_acting_takes_the_mean_and_the_likeliest_action(sensors, s
     np.testing.assert_allclose(continuous, expected.numpy(), rtol=1e-4, atol=1e-5)
     likeliest = [logits[:, :3].argmax(-1), logits[:, 3:].argmax(-1)]
     np.testing.assert_array_equal(discrete, torch.stack(likeliest, -1).numpy())
+
+
+@pytest.mark.parametrize("squash", [False, True], ids=["gaussian", "tanh"])
+def test_evaluate_gives_the_densities_torch_distributions_give(squash):
+    """``evaluate`` writes the densities out; they are torch's Normal and torchrl's
+    MaskedCategorical (the masked action has probability 0), and a mask leaves the
+    gradient finite."""
+    from torch.distributions import Normal
+    from torchrl.modules import MaskedCategorical
+
+    spec = hybrid_spec(VECTOR)
+    settings = NetworkSettings(hidden_units=16, tanh_squash=squash, conditional_sigma=squash)
+    torch.manual_seed(0)
+    network = ActorCritic(spec, settings)
+    obs = {"vector": torch.randn(32, *VECTOR.shape)}
+    mask = torch.ones(32, 5, dtype=torch.bool)
+    mask[:, 1] = False  # the first branch's middle action is never allowed
+    continuous, discrete, _ = network.act(obs, mask)
+    log_prob, entropy, _ = network.evaluate(obs, continuous, discrete, mask)
+
+    hidden = network.features(obs)
+    mean, log_std = network.mean_log_std(hidden)
+    normal = Normal(mean, log_std.exp())
+    u = torch.atanh(continuous.clamp(-1 + 1e-6, 1 - 1e-6)) if squash else continuous
+    expected_continuous = normal.log_prob(u)
+    if squash:
+        expected_continuous = expected_continuous - torch.log1p(-(torch.tanh(u) ** 2))
+    logits = torch.split(network.logits(hidden), (3, 2), dim=-1)
+    masks = torch.split(mask, (3, 2), dim=-1)
+    branches = [MaskedCategorical(logits=lg, mask=m) for lg, m in zip(logits, masks, strict=True)]
+    expected = torch.cat(
+        [expected_continuous]
+        + [b.log_prob(discrete[:, i]).unsqueeze(-1) for i, b in enumerate(branches)],
+        dim=-1,
+    )
+    assert torch.allclose(log_prob, expected, atol=1e-4)
+    expected_entropy = normal.entropy().mean(-1) + sum(b.entropy() for b in branches)
+    assert torch.allclose(entropy, expected_entropy, atol=1e-5)
+    (log_prob.sum() + entropy.sum()).backward()
+    assert all(torch.isfinite(p.grad).all() for p in network.parameters() if p.grad is not None)

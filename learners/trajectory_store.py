@@ -1,0 +1,160 @@
+"""An on-policy learner's steps, written once, at ingestion, into tensors on its device.
+
+Segments arrive as packed trajectories (docs/batch-format.md). Each field goes straight
+into a preallocated tensor of ``capacity`` rows on the learner's device, in the dtype it
+came in (cameras stay uint8), so an update neither concatenates the buffer nor copies it.
+
+Observations are kept once. Within a trajectory the next observation of a step is the
+observation of the step after it, so ``("next", "obs")`` is kept only where a trajectory
+ends truncated (a horizon cut, MaxStep): there the estimator bootstraps from it. A
+terminated end bootstraps with 0 and needs none. ML-Agents' buffer keeps one copy too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from batches import keys
+
+# per step besides the observations: log-probs, actions, mask, flags, advantage work
+_SMALL_FIELDS_BYTES = 256
+
+
+@dataclass(frozen=True)
+class Rows:
+    """The stored steps of one update, views ``[n, ...]`` of the store's tensors."""
+
+    obs: dict[str, torch.Tensor]
+    continuous: torch.Tensor | None
+    discrete: torch.Tensor | None
+    mask: torch.Tensor | None  # True = allowed
+    log_prob: torch.Tensor  # [n, components]
+    reward: torch.Tensor  # [n]
+    done: torch.Tensor  # [n] bool
+    terminated: torch.Tensor  # [n] bool
+    train: torch.Tensor  # [n] bool: counts in the loss (else context for the estimator)
+    end_rows: torch.Tensor  # [e] int64: the truncated ends, in row order
+    end_obs: dict[str, torch.Tensor]  # [e, ...]: their next observations
+
+    def __len__(self) -> int:
+        return len(self.log_prob)
+
+
+class TrajectoryStore:
+    """Preallocated columns; ``add`` appends a segment, ``take`` hands all rows over."""
+
+    def __init__(self, capacity: int, device: torch.device | str = "cpu") -> None:
+        self.capacity = capacity
+        self.device = torch.device(device)
+        self.columns: dict[str, torch.Tensor] = {}
+        self.ends: dict[str, torch.Tensor] = {}
+        self.rows = 0  # rows stored
+        self.end_count = 0
+        self.train_steps = 0  # rows that count in the loss
+
+    def add(self, segment: TensorDictBase, keep: torch.Tensor | None = None) -> int:
+        """Store a packed segment; ``keep`` (per step) narrows which steps train."""
+        count = segment.batch_size[0]
+        if keep is None:
+            keep = torch.ones(count, dtype=torch.bool)
+        fields = self._fields(segment, keep)
+        truncated = segment[keys.NEXT, keys.TRUNCATED].reshape(-1)
+        ends = truncated.nonzero().squeeze(-1)
+        next_obs = {name: value[ends] for name, value in segment[keys.NEXT, keys.OBS].items()}
+        if not self.columns:
+            self._allocate(fields, next_obs)
+        self._fit(self.rows + count, self.end_count + len(ends))
+        for name, value in fields.items():
+            self.columns[name][self.rows : self.rows + count].copy_(value, non_blocking=True)
+        end_rows = ends.to(self.device) + self.rows
+        self.ends["row"][self.end_count : self.end_count + len(ends)] = end_rows
+        for name, value in next_obs.items():
+            column = self.ends["obs/" + name]
+            column[self.end_count : self.end_count + len(ends)].copy_(value, non_blocking=True)
+        self.rows += count
+        self.end_count += len(ends)
+        steps = int(keep.sum())
+        self.train_steps += steps
+        return steps
+
+    def take(self) -> Rows:
+        """Every stored row (views, valid until the next ``add``); the store starts over."""
+        n, e = self.rows, self.end_count
+        self.rows = self.end_count = self.train_steps = 0
+
+        def column(name: str) -> torch.Tensor | None:  # an optional field
+            return self.columns[name][:n] if name in self.columns else None
+
+        obs = {k[4:]: v[:n] for k, v in self.columns.items() if k.startswith("obs/")}
+        end_obs = {k[4:]: v[:e] for k, v in self.ends.items() if k.startswith("obs/")}
+        return Rows(
+            obs=obs,
+            continuous=column("continuous"),
+            discrete=column("discrete"),
+            mask=column("mask"),
+            log_prob=self.columns["log_prob"][:n],
+            reward=self.columns["reward"][:n],
+            done=self.columns["done"][:n],
+            terminated=self.columns["terminated"][:n],
+            train=self.columns["train"][:n],
+            end_rows=self.ends["row"][:e],
+            end_obs=end_obs,
+        )
+
+    def nbytes(self) -> int:
+        return sum(t.nbytes for t in (*self.columns.values(), *self.ends.values()))
+
+    # --- internals ----------------------------------------------------------------------
+
+    @staticmethod
+    def _fields(segment: TensorDictBase, keep: torch.Tensor) -> dict[str, torch.Tensor]:
+        fields = {"obs/" + name: value for name, value in segment[keys.OBS].items()}
+        action = segment[keys.ACTION]
+        optional = {
+            keys.CONTINUOUS: action.get(keys.CONTINUOUS, None),
+            keys.DISCRETE: action.get(keys.DISCRETE, None),
+            "mask": segment.get(keys.ACTION_MASK, None),
+        }
+        fields.update({name: value for name, value in optional.items() if value is not None})
+        fields["log_prob"] = segment[keys.LOG_PROB]
+        fields["reward"] = segment[keys.NEXT, keys.REWARD].reshape(-1)
+        fields["done"] = segment[keys.NEXT, keys.DONE].reshape(-1)
+        fields["terminated"] = segment[keys.NEXT, keys.TERMINATED].reshape(-1)
+        fields["train"] = keep.to(torch.bool)
+        return fields
+
+    def _allocate(self, fields: dict[str, torch.Tensor], next_obs: dict[str, torch.Tensor]) -> None:
+        for name, value in fields.items():
+            self.columns[name] = self._empty(self.capacity, value)
+        end_capacity = max(64, self.capacity // 16)
+        self.ends["row"] = torch.empty(end_capacity, dtype=torch.int64, device=self.device)
+        for name, value in next_obs.items():
+            self.ends["obs/" + name] = self._empty(end_capacity, value)
+
+    def _empty(self, rows: int, like: torch.Tensor) -> torch.Tensor:
+        return torch.empty((rows, *like.shape[1:]), dtype=like.dtype, device=self.device)
+
+    def _fit(self, rows: int, ends: int) -> None:
+        """Grow where a segment does not fit (once the buffer is past ``buffer_size``, the
+        segment that tips it over may be long)."""
+        if rows > len(self.columns["log_prob"]):
+            size = max(rows, math.ceil(len(self.columns["log_prob"]) * 1.25))
+            self.columns = {k: _grown(v, size, self.rows) for k, v in self.columns.items()}
+        if ends > len(self.ends["row"]):
+            size = max(ends, len(self.ends["row"]) * 2)
+            self.ends = {k: _grown(v, size, self.end_count) for k, v in self.ends.items()}
+
+
+def _grown(tensor: torch.Tensor, rows: int, used: int) -> torch.Tensor:
+    bigger = torch.empty((rows, *tensor.shape[1:]), dtype=tensor.dtype, device=tensor.device)
+    bigger[:used] = tensor[:used]
+    return bigger
+
+
+def step_bytes(observation_bytes: int) -> int:
+    """What one stored step costs the store: its observations once, plus small fields."""
+    return observation_bytes + _SMALL_FIELDS_BYTES
