@@ -16,6 +16,7 @@ from typing import Any
 import ray
 
 from rollout.service import RolloutError, RolloutService
+from rollout.service_config import OUT_OF_MEMORY
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,11 @@ class LearnerKeeper:
         """A new learner from the newest checkpoint (or from the start, before the first
         one), its version numbered past every version the dead one published, so that each
         worker takes the restored weights with its next collect."""
+        if cause.startswith(OUT_OF_MEMORY):  # a new learner would fill the same buffer
+            raise RolloutError(
+                f"the learner {cause}; lower the behaviors' buffer_size or give the "
+                "learner's node more memory (the run's last checkpoint stays)"
+            )
         restart = service.metrics.learner_restarts + 1  # the service counts them
         if restart > self.max_restarts:
             raise RolloutError(

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -108,3 +109,32 @@ def to_cpu(tree: Any) -> Any:
     if isinstance(tree, list | tuple):
         return type(tree)(to_cpu(value) for value in tree)
     return tree
+
+
+def free_memory(device: torch.device) -> int | None:
+    """Bytes this process can still take on ``device``: a GPU's free memory, or the host's
+    available memory within the container's limit (cgroup v2 or v1); None if unknown."""
+    import torch
+
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    free: list[int] = []
+    try:
+        meminfo = Path("/proc/meminfo").read_text()
+        free.append(int(re.search(r"MemAvailable:\s+(\d+) kB", meminfo)[1]) * 1024)  # type: ignore[index]
+    except (OSError, TypeError):
+        pass
+    for limit, usage in _CGROUP_FILES:
+        try:
+            cap, used = Path(limit).read_text().strip(), Path(usage).read_text().strip()
+        except OSError:
+            continue
+        if cap.isdigit() and used.isdigit() and int(cap) < 2**60:
+            free.append(max(int(cap) - int(used), 0))
+    return min(free) if free else None
+
+
+_CGROUP_FILES = (
+    ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+    ("/sys/fs/cgroup/memory/memory.limit_in_bytes", "/sys/fs/cgroup/memory/memory.usage_in_bytes"),
+)

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from batches import keys
+from batches.contracts import base_name
 from batches.segment import Segment
 from batches.specs import spec_from_dict
 from learners import checkpoint
@@ -30,6 +31,7 @@ from learners.devices import Compute, to_cpu
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
 from learners.trainers import trainer
+from learners.trajectory_store import BufferTooLarge
 
 if TYPE_CHECKING:  # tensordict only where segments arrive: the driver never loads it
     from tensordict import TensorDict
@@ -47,13 +49,6 @@ class Algorithm(Protocol):
     def wanted(self) -> int | None: ...  # on-policy: steps missing before the next update
     def update(self, progress: float) -> dict[str, float]: ...
     def state_dict(self) -> dict[str, Any]: ...
-    def initialize(self, state: dict[str, Any]) -> None:
-        """Start from another run's networks (``--initialize-from``): its weights and
-        observation statistics, none of its steps, versions or optimizer state."""
-        self._published = None
-        for name, entry in state["behaviors"].items():
-            self._behavior(name, entry["spec"]).network.load_state_dict(entry["network"])
-
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
@@ -129,7 +124,10 @@ class CentralLearner:
             state.steps += segment.batch_size[0]
             if self.inference:
                 continue
-            state.algorithm.add(segment, lag)
+            try:
+                state.algorithm.add(segment, lag)
+            except BufferTooLarge as error:  # before the buffer exists: one line, no OOM kill
+                raise MemoryError(f"behavior {base_name(behavior)}: {error}") from None
             if state.algorithm.ready():
                 self._update(behavior, state)
         self.stats.submit_seconds += time.perf_counter() - started

@@ -14,14 +14,22 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
-from tensordict import TensorDictBase
 
 from batches import keys
+from learners.devices import free_memory
 
-# per step besides the observations: log-probs, actions, mask, flags, advantage work
-_SMALL_FIELDS_BYTES = 256
+if TYPE_CHECKING:
+    from tensordict import TensorDictBase
+
+# what an update takes beyond the store: value chunks, a minibatch's activations, gradients
+UPDATE_HEADROOM = 512 * 2**20
+
+
+class BufferTooLarge(MemoryError):
+    """The configured buffer cannot fit the learner's memory; one line with the figures."""
 
 
 @dataclass(frozen=True)
@@ -47,8 +55,11 @@ class Rows:
 class TrajectoryStore:
     """Preallocated columns; ``add`` appends a segment, ``take`` hands all rows over."""
 
-    def __init__(self, capacity: int, device: torch.device | str = "cpu") -> None:
+    def __init__(
+        self, capacity: int, device: torch.device | str = "cpu", what: str = "buffer_size"
+    ) -> None:
         self.capacity = capacity
+        self.what = what  # the setting that sizes the store, for the error
         self.device = torch.device(device)
         self.columns: dict[str, torch.Tensor] = {}
         self.ends: dict[str, torch.Tensor] = {}
@@ -128,9 +139,19 @@ class TrajectoryStore:
         return fields
 
     def _allocate(self, fields: dict[str, torch.Tensor], next_obs: dict[str, torch.Tensor]) -> None:
+        end_capacity = max(64, self.capacity // 16)
+        step = sum(_row_bytes(v) for v in fields.values())
+        need = self.capacity * step + end_capacity * sum(_row_bytes(v) for v in next_obs.values())
+        free = free_memory(self.device)
+        if free is not None and need + UPDATE_HEADROOM > free:
+            raise BufferTooLarge(
+                f"{self.what} {self.capacity - 1} needs about {_gb(need + UPDATE_HEADROOM)} of "
+                f"learner memory ({step:,} bytes per step, observations kept once, and "
+                f"{_gb(UPDATE_HEADROOM)} for the update), and the learner's {self.device} has "
+                f"{_gb(free)} free: lower {self.what}, or give the learner more memory"
+            )
         for name, value in fields.items():
             self.columns[name] = self._empty(self.capacity, value)
-        end_capacity = max(64, self.capacity // 16)
         self.ends["row"] = torch.empty(end_capacity, dtype=torch.int64, device=self.device)
         for name, value in next_obs.items():
             self.ends["obs/" + name] = self._empty(end_capacity, value)
@@ -155,6 +176,9 @@ def _grown(tensor: torch.Tensor, rows: int, used: int) -> torch.Tensor:
     return bigger
 
 
-def step_bytes(observation_bytes: int) -> int:
-    """What one stored step costs the store: its observations once, plus small fields."""
-    return observation_bytes + _SMALL_FIELDS_BYTES
+def _row_bytes(tensor: torch.Tensor) -> int:
+    return tensor[0].numel() * tensor.element_size() if len(tensor) else 0
+
+
+def _gb(count: int) -> str:
+    return f"{count / 2**30:.1f} GB"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 from rollout.ports import PortRange
@@ -20,8 +21,37 @@ class LearnerDied(RuntimeError):
 
 
 def last_line(error: Exception) -> str:
+    """What a Ray error says in one line: its last, or for an out-of-memory kill which
+    node ran out (Ray's message ends in a table of processes)."""
     text = str(error).strip()
+    if (memory := out_of_memory(text)) is not None:
+        return memory
     return text.splitlines()[-1] if text else type(error).__name__
+
+
+# Ray's memory monitor, 2.x: "Memory on the node (IP: 10.0.0.5, ID: ...) was 30.1GB used /
+# 31.2GB limit (...)"; before 2.40: "... where the task (...) was running was 30.1GB / 31.2GB"
+_RAY_MEMORY = re.compile(
+    r"Memory on the node \(IP: (?P<ip>[^,]+),.*?was (?P<used>[\d.]+) ?GB(?: used)? / "
+    r"(?P<total>[\d.]+) ?GB",
+    re.S,
+)
+
+
+OUT_OF_MEMORY = "ran out of memory"
+
+
+def out_of_memory(text: str) -> str | None:
+    """One line for a process that Ray's memory monitor killed, else None."""
+    if "low on memory" not in text and "OutOfMemoryError" not in text:
+        return None
+    found = _RAY_MEMORY.search(text)
+    where = (
+        f" on node {found['ip']} ({found['used']} GB of {found['total']} GB in use)"
+        if found
+        else ""
+    )
+    return f"{OUT_OF_MEMORY}{where}: Ray's memory monitor killed it"
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import pytest
 from ray.exceptions import ActorDiedError, ActorUnavailableError, RayTaskError
 
-from rollout.service_config import LearnerDied, RolloutError
+from rollout.service_config import LearnerDied, RolloutError, last_line
 from rollout.supervision import WorkerSupervision
 from rollout.worker import WeightsLost
 
@@ -69,3 +69,30 @@ def test_a_collect_that_raised_in_the_worker_ends_the_run_naming_it():
     error = RayTaskError("collect", "traceback", RuntimeError("restart budget spent"))
     with pytest.raises(RolloutError, match=r"worker 0: .*restart budget spent"):
         s._collect_failed(0, None, error)
+
+
+# Ray's memory monitor's messages: 2.60's raylet, and the form before 2.40 (Ray's docs)
+RAY_260_OOM = (
+    "The actor died unexpectedly before finishing this task.\n\tclass_name: LearnerHost\n"
+    "The actor is dead because its worker process has died. Worker exit type: "
+    "USER_ERROR Worker exit detail: 1 worker(s) were killed due to the node running low "
+    "on memory. Memory on the node (IP: 10.0.0.5, ID: 3a4b60) was 30.12GB used / 31.20GB "
+    "limit (0.965385)\nTop 10 memory users:\nPID\tMEM(GB)\tCOMMAND\n411\t19.60\tray::LearnerHost"
+)
+RAY_OLD_OOM = (
+    "Task was killed due to the node running low on memory.\nMemory on the node (IP: "
+    "172.17.0.2, ID: 3a4b60) where the task was running was 32.53GB / 33.28GB (0.977449), "
+    "which exceeds the memory usage threshold of 0.969955.\nConsider provisioning more memory"
+)
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [
+        (RAY_260_OOM, "10.0.0.5 (30.12 GB of 31.20 GB"),
+        (RAY_OLD_OOM, "172.17.0.2 (32.53 GB of 33.28 GB"),
+    ],
+)
+def test_an_out_of_memory_kill_is_one_line_naming_the_node(text, where):
+    line = last_line(RuntimeError(text))
+    assert line == f"ran out of memory on node {where} in use): Ray's memory monitor killed it"
