@@ -135,7 +135,7 @@ class IMPALA:
         batch = self.buffer.take(self.network, self.settings.reward_strength)
         lr = decay(h.learning_rate, progress, h.learning_rate_schedule)
         set_learning_rate(self.optimizer, lr)
-        totals: dict[str, float] = {}
+        totals: dict[str, Any] = {}
         samples, rho_sum, value_sum = 0, 0.0, 0.0
         for _ in range(h.num_epoch):
             batch = self.vtrace(batch)  # targets under the newest weights

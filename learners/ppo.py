@@ -62,25 +62,29 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
 def gradient_step(
     losses: TensorDictBase | Mapping[str, torch.Tensor],
     optimizer: torch.optim.Optimizer,
-    totals: dict[str, float],
+    totals: dict[str, Any],
     max_grad_norm: float | None = None,
 ) -> None:
-    """Sum a loss's ``loss_*`` entries, step, and add every entry's value to ``totals``."""
+    """Sum a loss's ``loss_*`` entries, step, and add every entry's value to ``totals``
+    (as tensors: read once per update, not once per step, which would wait on a GPU)."""
     loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
-    optimizer.zero_grad()
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    for param in params:  # what zero_grad does, without its per-call wrapper
+        param.grad = None
     loss.backward()
     if max_grad_norm is not None:
-        params = [p for group in optimizer.param_groups for p in group["params"]]
         torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
     optimizer.step()
-    for key, value in losses.items():
-        totals[key] = totals.get(key, 0.0) + float(value.detach().mean())
-    totals["updates"] = totals.get("updates", 0.0) + 1
+    with torch.no_grad():
+        for key, value in losses.items():
+            totals[key] = totals.get(key, 0.0) + value.detach().mean()
+    totals["updates"] = totals.get("updates", 0) + 1
 
 
-def means(totals: dict[str, float]) -> dict[str, float]:
+def means(totals: dict[str, Any]) -> dict[str, float]:
     """Per gradient step: the mean of each loss entry ``gradient_step`` added up."""
-    return {key: value / max(totals.get("updates", 0), 1) for key, value in totals.items()}
+    steps = max(int(totals.get("updates", 0)), 1)
+    return {key: float(value) / steps for key, value in totals.items()}
 
 
 def actor_critic_report(mean: dict[str, float], lr: float, beta: float) -> dict[str, float]:
@@ -177,7 +181,7 @@ class PPO:
         epsilon = decay(h.epsilon, progress, h.epsilon_schedule or schedule, EPSILON_END)
         beta = decay(h.beta, progress, h.beta_schedule or schedule, BETA_END)
         set_learning_rate(self.optimizer, lr)
-        totals: dict[str, float] = {}
+        totals: dict[str, Any] = {}
         data = Steps.of(rows, advantage, value_target)
         for _ in range(h.num_epoch):
             order = train[torch.randperm(len(train), device=train.device)]
@@ -247,7 +251,7 @@ class PPO:
             "loss_critic": 0.5 * value_loss.mean(),
             "loss_entropy": -beta * entropy,
             "entropy": entropy.detach(),
-            "clip_fraction": ((ratio - 1.0).abs() > epsilon).float().mean(),
+            "clip_fraction": ((ratio.detach() - 1.0).abs() > epsilon).float().mean(),
             "kl_approx": -log_ratio.detach().mean(),
         }
 
