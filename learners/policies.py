@@ -182,11 +182,15 @@ class ActorCritic(nn.Module):
         # the learner's mixed precision (``devices.Compute.autocast``): images in bfloat16
         self.autocast: Callable[[], AbstractContextManager[Any]] = contextlib.nullcontext
 
-    def update_normalization(self, obs: dict[str, torch.Tensor]) -> None:
-        """Fold observations the learner trains on into the running statistics."""
+    def update_normalization(
+        self, obs: dict[str, torch.Tensor], rows: torch.Tensor | None = None
+    ) -> None:
+        """Fold observations the learner trains on (``rows`` of them, else all) into the
+        running statistics; only normalized sensors are read."""
         for name, encoder in zip(self.sensor_names, self.encoders, strict=True):
             if encoder.norm is not None:
-                encoder.norm.update(encoder.net(obs[name]))
+                values = obs[name] if rows is None else obs[name][rows]
+                encoder.norm.update(encoder.net(values))
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         parts = []

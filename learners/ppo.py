@@ -144,7 +144,7 @@ class PPO:
         self.compute = compute or Compute()
         h = settings.hyperparameters
         self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate, fused=True)
-        self.store = TrajectoryStore(h.buffer_size + 1, self.compute.torch_device)
+        self.store = TrajectoryStore(h.buffer_size, self.compute.torch_device)
         self.stale_steps = 0
 
     # --- data in ------------------------------------------------------------------------
@@ -170,7 +170,7 @@ class PPO:
         h = self.settings.hyperparameters
         rows = self.store.take()
         train = rows.train.nonzero().squeeze(-1)  # the steps that count in the loss
-        self.network.update_normalization({n: o[train] for n, o in rows.obs.items()})
+        self.network.update_normalization(rows.obs, None if len(train) == len(rows) else train)
         with torch.no_grad():
             value, advantage, value_target = self.estimate(rows)
         trained = advantage[train]

@@ -1,8 +1,10 @@
 """An on-policy learner's steps, written once, at ingestion, into tensors on its device.
 
 Segments arrive as packed trajectories (docs/batch-format.md). Each field goes straight
-into a preallocated tensor of ``capacity`` rows on the learner's device, in the dtype it
-came in (cameras stay uint8), so an update neither concatenates the buffer nor copies it.
+into a preallocated tensor on the learner's device, in the dtype it came in (cameras stay
+uint8), so an update neither concatenates the buffer nor copies it. The tensors hold
+``rows`` (``buffer_size``) plus room for a few segments past it: the update comes once
+the buffer is *over* ``buffer_size``, and the segment that tips it over is stored whole.
 
 Observations are kept once. Within a trajectory the next observation of a step is the
 observation of the step after it, so ``("next", "obs")`` is kept only where a trajectory
@@ -56,9 +58,9 @@ class TrajectoryStore:
     """Preallocated columns; ``add`` appends a segment, ``take`` hands all rows over."""
 
     def __init__(
-        self, capacity: int, device: torch.device | str = "cpu", what: str = "buffer_size"
+        self, rows: int, device: torch.device | str = "cpu", what: str = "buffer_size"
     ) -> None:
-        self.capacity = capacity
+        self.wanted_rows = rows
         self.what = what  # the setting that sizes the store, for the error
         self.device = torch.device(device)
         self.columns: dict[str, torch.Tensor] = {}
@@ -77,7 +79,7 @@ class TrajectoryStore:
         ends = truncated.nonzero().squeeze(-1)
         next_obs = {name: value[ends] for name, value in segment[keys.NEXT, keys.OBS].items()}
         if not self.columns:
-            self._allocate(fields, next_obs)
+            self._allocate(fields, next_obs, self.wanted_rows + min(4 * count, self.wanted_rows))
         self._fit(self.rows + count, self.end_count + len(ends))
         for name, value in fields.items():
             self.columns[name][self.rows : self.rows + count].copy_(value, non_blocking=True)
@@ -138,20 +140,22 @@ class TrajectoryStore:
         fields["train"] = keep.to(torch.bool)
         return fields
 
-    def _allocate(self, fields: dict[str, torch.Tensor], next_obs: dict[str, torch.Tensor]) -> None:
-        end_capacity = max(64, self.capacity // 16)
+    def _allocate(
+        self, fields: dict[str, torch.Tensor], next_obs: dict[str, torch.Tensor], rows: int
+    ) -> None:
+        end_capacity = max(64, rows // 16)
         step = sum(_row_bytes(v) for v in fields.values())
-        need = self.capacity * step + end_capacity * sum(_row_bytes(v) for v in next_obs.values())
+        need = rows * step + end_capacity * sum(_row_bytes(v) for v in next_obs.values())
         free = free_memory(self.device)
         if free is not None and need + UPDATE_HEADROOM > free:
             raise BufferTooLarge(
-                f"{self.what} {self.capacity - 1} needs about {_gb(need + UPDATE_HEADROOM)} of "
+                f"{self.what} {self.wanted_rows} needs about {_gb(need + UPDATE_HEADROOM)} of "
                 f"learner memory ({step:,} bytes per step, observations kept once, and "
                 f"{_gb(UPDATE_HEADROOM)} for the update), and the learner's {self.device} has "
                 f"{_gb(free)} free: lower {self.what}, or give the learner more memory"
             )
         for name, value in fields.items():
-            self.columns[name] = self._empty(self.capacity, value)
+            self.columns[name] = self._empty(rows, value)
         self.ends["row"] = torch.empty(end_capacity, dtype=torch.int64, device=self.device)
         for name, value in next_obs.items():
             self.ends["obs/" + name] = self._empty(end_capacity, value)

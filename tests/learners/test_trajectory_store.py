@@ -67,7 +67,8 @@ def test_cameras_stay_uint8_and_observations_are_kept_once():
     store.add(pixels)
     camera, ends = store.columns["obs/camera"], store.ends["obs/camera"]
     assert camera.dtype == ends.dtype == torch.uint8
-    assert len(camera) == 64 and len(ends) == 64  # 4 truncated ends kept, room for 64
+    # room for the 64 steps asked and a few segments past them; 4 truncated ends kept
+    assert len(camera) == 64 + 64 and len(ends) == 64
     rows = store.take()
     assert torch.equal(rows.obs["camera"], torch.cat([pixels[keys.OBS, "camera"]] * 2))
     assert rows.end_rows.tolist() == [15, 31, 47, 63]
