@@ -4,10 +4,10 @@ A worker process that never imports torch starts 1.3 s of CPU sooner and stays a
 180 MB smaller. So the initial weights of the layers a worker acts with are drawn here
 (with numpy; ``learners.factory`` seeds them from the run's seed and the behavior's name,
 the same in the learner and in every worker), and the learner publishes its weights as
-numpy arrays. :class:`NumpyActor` mirrors
-``learners.policies.ActorCritic.act`` for vector observations; behaviors with images or
-hyper-conditioned goals act through the torch network (``learners.policies.TorchActor``),
-whose process then loads torch.
+numpy arrays. :class:`NumpyActor` mirrors ``learners.policies.ActorCritic.act``, images
+through ``learners.image_acting``'s numpy encoders; only hyper-conditioned goals act
+through the torch network (``learners.policies.TorchActor``), whose process then loads
+torch.
 
 Weight names are ``ActorCritic.state_dict()``'s, so one dict serves both.
 """
@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
 
+from learners.image_acting import NumpyImageEncoder, initial_encoder_weights
 from learners.settings import NetworkSettings
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
@@ -59,20 +60,19 @@ def trunk_input_width(spec: BehaviorSpec, settings: NetworkSettings) -> int:
 
 
 def acts_in_numpy(spec: BehaviorSpec, settings: NetworkSettings) -> bool:
-    """Vector sensors and no goal conditioning: the numpy actor covers it."""
-    return not goal_sensors(spec, settings) and all(
-        len(o.shape) != 3 for o in spec.observation_specs
-    )
+    """No goal conditioning: the numpy actor covers vectors and images."""
+    return not goal_sensors(spec, settings)
 
 
 def initial_weights(
     spec: BehaviorSpec, settings: NetworkSettings, rng: np.random.Generator
 ) -> dict[str, np.ndarray]:
-    """ML-Agents' initialization of every layer but the image encoders' (torch draws those,
-    ``learners.encoders``): zero biases, weights from ``kaiming_normal`` for a linear layer
-    (std 1/sqrt(fan in)) times a gain (mean and log-std heads 0.2, discrete heads 0.1) or
-    ``xavier_uniform`` (the value head); log-std 0; normalizers at mean 0, variance 1.
-    Drawn in a fixed order, so a seeded ``rng`` gives the same weights in every process."""
+    """ML-Agents' initialization of every layer: zero biases, weights from
+    ``kaiming_normal`` for a linear layer (std 1/sqrt(fan in)) times a gain (mean and
+    log-std heads 0.2, discrete heads 0.1) or ``xavier_uniform`` (the value head); log-std
+    0; normalizers at mean 0, variance 1. Image encoders last, with torch's default laws
+    (``learners.image_acting``). Drawn in a fixed order, so a seeded ``rng`` gives the
+    same weights in every process."""
     state: dict[str, np.ndarray] = {}
 
     def linear(name: str, fan_in: int, out: int, gain: float = 1.0, xavier: bool = False) -> None:
@@ -108,6 +108,13 @@ def initial_weights(
     if branches:
         linear("logits", width, branches, gain=0.1)
     linear("value", width, 1, xavier=True)
+    for index, observation in enumerate(spec.observation_specs):
+        if len(observation.shape) == 3:
+            shape = tuple(observation.shape)
+            prefix = f"encoders.{index}.net"
+            kind, out = settings.vis_encode_type, settings.hidden_units
+            draws = initial_encoder_weights(prefix, shape, kind, out, rng, observation.name)
+            state.update(draws)
     return state
 
 
@@ -136,9 +143,10 @@ class NumpyActor:
         state: Mapping[str, Any],
         seed: int | None = None,
     ) -> None:
-        assert acts_in_numpy(spec, settings), "images or goal conditioning need TorchActor"
+        assert acts_in_numpy(spec, settings), "goal conditioning needs TorchActor"
         self.settings = settings
         self.sensor_names = [o.name for o in spec.observation_specs]
+        self.images = {i for i, o in enumerate(spec.observation_specs) if len(o.shape) == 3}
         self.branches = tuple(spec.action_spec.discrete_branches)
         self.rng = np.random.default_rng(seed)
         self.load_state_dict(state)
@@ -150,6 +158,17 @@ class NumpyActor:
             weight = np.ascontiguousarray(_as_numpy(state[f"{name}.weight"]).T)
             return weight, _as_numpy(state[f"{name}.bias"])
 
+        self._images = {
+            index: NumpyImageEncoder(
+                self.settings.vis_encode_type,
+                {
+                    k[len(f"encoders.{index}.net.") :]: v
+                    for k, v in state.items()
+                    if k.startswith(f"encoders.{index}.net.")
+                },
+            )
+            for index in self.images
+        }
         self._norms: list[tuple[np.ndarray, np.ndarray] | None] = []
         for index in range(len(self.sensor_names)):
             prefix = f"encoders.{index}.norm"
@@ -177,7 +196,10 @@ class NumpyActor:
         [n, c + branches] float32), as ``ActorCritic.act``."""
         n = len(next(iter(obs.values())))
         parts = []
-        for name, norm in zip(self.sensor_names, self._norms, strict=True):
+        for index, (name, norm) in enumerate(zip(self.sensor_names, self._norms, strict=True)):
+            if index in self._images:
+                parts.append(self._images[index](obs[name]))
+                continue
             part = obs[name].reshape(n, -1)
             if norm is not None:
                 part = np.clip((part - norm[0]) * norm[1], -NORM_CLIP, NORM_CLIP)

@@ -3,13 +3,15 @@
 Every type ends, as ML-Agents' do, in one dense layer to ``hidden_units`` (weights
 ``kaiming_normal`` with a linear gain, times 1.41; zero bias), so an image sensor's encoded
 width is ``hidden_units`` whatever its size. Convolutions keep torch's default
-initialization, as ML-Agents' do. Each type has a smallest side its layers accept
+initialization, as ML-Agents' do (drawn in numpy by ``learners.image_acting``, which is
+also the workers' numpy form of these encoders). Each type has a smallest side its layers accept
 (``MIN_SIZE``, ML-Agents' ``MIN_RESOLUTION_FOR_ENCODER``); a smaller image is a one-line
 :class:`ImageTooSmall` naming the sensor, its size and what would fit.
 
 Inputs are ``[..., C, H, W]``, float in [0, 1] or uint8 in [0, 255] (a player's PNG as
 stored); uint8 becomes float / 255 here, on the input's device.
-Owned here: the architectures and their minimum sizes. Not owned: vector sensors and the
+Owned here: the architectures in torch. Not owned: their minimum sizes and the size check
+(``learners.image_acting``, which workers import without torch), vector sensors and the
 trunks (``learners.policies``), the config check of the type name (``learners.config_keys``).
 """
 
@@ -20,43 +22,9 @@ from functools import partial
 import torch
 from torch import nn
 
-from learners.config_keys import VIS_ENCODE_TYPES
+from learners.image_acting import DENSE_GAIN, MIN_SIZE, ImageTooSmall, check_size
 
 __all__ = ["MIN_SIZE", "ImageTooSmall", "VisualEncoder", "check_size", "visual_encoder"]
-
-# smallest height and width each type's layers accept (ML-Agents' values)
-MIN_SIZE: dict[str, int] = {
-    "simple": 20,
-    "nature_cnn": 36,
-    "resnet": 15,
-    "match3": 5,
-    "fully_connected": 1,
-}
-assert tuple(MIN_SIZE) == VIS_ENCODE_TYPES, "every configurable type has a minimum"
-DENSE_GAIN = 1.41  # ML-Agents' ReLU gain on the encoders' dense layer
-
-
-class ImageTooSmall(ValueError):
-    """An image sensor smaller than its encoder's minimum; the message is one line."""
-
-
-def check_size(sensor: str, shape: tuple[int, ...], encoder_type: str) -> None:
-    """Raise :class:`ImageTooSmall` when ``shape`` ``(C, H, W)`` is below the type's minimum,
-    naming the types that would take it (so the fix is in the message)."""
-    if encoder_type not in MIN_SIZE:
-        raise ValueError(
-            f"vis_encode_type: expected one of {', '.join(MIN_SIZE)}, got {encoder_type!r}"
-        )
-    _, height, width = shape
-    minimum = MIN_SIZE[encoder_type]
-    if min(height, width) >= minimum:
-        return
-    fitting = [t for t, size in MIN_SIZE.items() if size <= min(height, width)]
-    fix = f"use vis_encode_type {' or '.join(fitting)}, or " if fitting else "use "
-    raise ImageTooSmall(
-        f"sensor {sensor} is {height}x{width}, below {encoder_type}'s minimum of "
-        f"{minimum}x{minimum}: {fix}a larger image"
-    )
 
 
 def _dense(width: int, out: int) -> nn.Linear:
@@ -157,7 +125,8 @@ def visual_encoder(
     shape: tuple[int, ...], encoder_type: str, out: int, sensor: str = "image"
 ) -> VisualEncoder:
     """The ``encoder_type`` encoder of ``(C, H, W)`` images to ``out`` features (its
-    weights from torch's random stream); :class:`ImageTooSmall` below the minimum."""
+    weights from torch's random stream, which ``learners.image_acting`` draws again in
+    numpy for every network); :class:`ImageTooSmall` below the minimum."""
     check_size(sensor, shape, encoder_type)
     body, activation = _BUILDERS[encoder_type](shape[0])
     return VisualEncoder(body, tuple(shape), out, activation)

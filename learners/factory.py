@@ -17,6 +17,7 @@ from mlagents_envs.base_env import BehaviorSpec
 
 from batches.contracts import base_name
 from learners.acting import NumpyActor, acts_in_numpy, initial_weights
+from learners.image_acting import ImageTooSmall
 from learners.settings import NetworkSettings, RunConfig, TrainerSettings
 from learners.trainers import trainer
 
@@ -46,26 +47,25 @@ class PolicyFactory:
         return zlib.crc32(f"{self.seed}/{behavior}".encode())
 
     def initial_weights(self, behavior: str, spec: BehaviorSpec) -> dict[str, np.ndarray]:
+        """An image below its encoder's minimum size fails here, naming the behavior."""
         rng = np.random.default_rng(self._key(behavior))
-        return initial_weights(spec, self.settings_for(behavior), rng)
+        try:
+            return initial_weights(spec, self.settings_for(behavior), rng)
+        except ImageTooSmall as error:
+            raise ImageTooSmall(f"behavior {base_name(behavior)} {error}") from None
 
     def network(self, behavior: str, spec: BehaviorSpec) -> ActorCritic:
-        """The learner's ``ActorCritic`` (loads torch), starting from ``initial_weights``.
-        An image below its encoder's minimum size fails here, naming the behavior."""
-        from learners.encoders import ImageTooSmall
+        """The learner's ``ActorCritic`` (loads torch), starting from ``initial_weights``."""
         from learners.policies import seeded_network
 
         initial = self.initial_weights(behavior, spec)
-        try:
-            return seeded_network(spec, self.settings_for(behavior), self._key(behavior), initial)
-        except ImageTooSmall as error:
-            raise ImageTooSmall(f"behavior {base_name(behavior)} {error}") from None
+        return seeded_network(spec, self.settings_for(behavior), self._key(behavior), initial)
 
     def __call__(self, behavior: str, spec: BehaviorSpec) -> NumpyActor | TorchActor:
         settings = self.settings_for(behavior)
         if acts_in_numpy(spec, settings):
             return NumpyActor(spec, settings, self.initial_weights(behavior, spec))
-        from learners.policies import TorchActor  # images: this worker needs torch
+        from learners.policies import TorchActor  # goal conditioning: this worker needs torch
 
         return TorchActor(self.network(behavior, spec))
 

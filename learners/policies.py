@@ -142,8 +142,8 @@ class ActorCritic(nn.Module):
         settings: NetworkSettings | None = None,
         initial: Mapping[str, np.ndarray] | None = None,
     ) -> None:
-        """``initial``: every weight but the image encoders' (``acting.initial_weights``,
-        ML-Agents' initialization); drawn here from torch's random stream when not given.
+        """``initial``: every weight (``acting.initial_weights``, ML-Agents' initialization),
+        drawn here from a seed taken from torch's random stream when not given.
         An image below its encoder's minimum size raises ``encoders.ImageTooSmall``."""
         super().__init__()
         settings = settings or NetworkSettings()
@@ -347,9 +347,9 @@ class TorchActor:
 def seeded_network(
     spec: BehaviorSpec, settings: NetworkSettings, seed: int, initial: Mapping[str, np.ndarray]
 ) -> ActorCritic:
-    """An ``ActorCritic`` with ``initial`` weights (``acting.initial_weights``), its image
-    encoders drawn from torch seeded by ``seed``; the caller's random stream is left as
-    it was."""
+    """An ``ActorCritic`` with ``initial`` weights (``acting.initial_weights``); the draws
+    torch's layers make when built (all replaced) come from a stream seeded by ``seed``,
+    so the caller's random stream is left as it was."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         return ActorCritic(spec, settings, initial)

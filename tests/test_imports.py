@@ -94,6 +94,12 @@ WORKER = (  # its actor class's module, the policy factory it unpickles, one vec
     "actor = factory('3DBall?team=0', BehaviorSpec([obs], ActionSpec(2, (3,))))\n"
     "actor.act({'v': np.zeros((4, 8), np.float32)})\n"
 )
+CAMERA_WORKER = WORKER + (  # and a camera behavior (AnimalArena's shape), acting in numpy
+    "pixels = (DimensionProperty.NONE, *(DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,) * 2)\n"
+    "camera = ObservationSpec((3, 84, 84), pixels, ObservationType.DEFAULT, 'camera')\n"
+    "actor = factory('Arena?team=0', BehaviorSpec([camera, obs], ActionSpec(0, (3, 3))))\n"
+    "actor.act({'camera': np.zeros((4, 3, 84, 84), np.uint8), 'v': np.zeros((4, 8), np.float32)})\n"
+)
 DRIVER = "import driver.cli, driver.train\n"  # `unity-rollout train`, before the learner
 
 
@@ -101,6 +107,7 @@ DRIVER = "import driver.cli, driver.train\n"  # `unity-rollout train`, before th
     ("process", "script", "expected", "absent"),
     [
         ("worker", WORKER, ("rollout.collector", "learners.factory"), ("torch",)),
+        ("camera worker", CAMERA_WORKER, ("learners.image_acting",), ("torch",)),
         ("driver", DRIVER, ("rollout.service", "learners.remote"), ("torch",)),
     ],
 )
@@ -110,8 +117,9 @@ def test_workers_and_the_driver_load_neither_torch_nor_tensordict_nor_torchrl(
     """tensordict and torchrl (with torch._dynamo) took most of a worker's start, and a
     second of the driver's CPU while Ray starts; segments travel as numpy and become
     TensorDicts in the learner's process only. A worker acting on vector observations
-    loads no torch either (1.3 s of CPU and about 180 MB), nor does the driver before its
-    first checkpoint (the learner's process does)."""
+    loads no torch either (1.3 s of CPU and about 180 MB), nor one acting on a camera (it
+    was 730-816 MB resident with torch), nor does the driver before its first checkpoint
+    (the learner's process does)."""
     script = f"import json, sys\n{script}print(json.dumps(sorted(sys.modules)))\n"
     result = subprocess.run(
         [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=120
