@@ -66,7 +66,7 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
     config = service_config(UnityConfig("unitysim:3DBall"), registry, workers, horizon)
     with RolloutService(config, actor_factory, learner) as service:
         service.run(until=lambda m: m.segments > 0, seconds=120)
-        service.run(seconds=12)
+        service.run(until=lambda m: service.version >= 4, seconds=60)  # 3 versions acted
         summary = ray_session.get(learner.summary.remote())
     ray_session.kill(learner)
     # A collect stops after the exchange that reaches its share (one exchange of 3DBall's
@@ -89,11 +89,11 @@ def test_the_driver_gets_control_back_while_the_learner_updates(ray_session, reg
     learner = (
         ray_session.remote(CountingLearner)
         .options(max_concurrency=2)
-        .remote(demand=demand, update_seconds=15)
+        .remote(demand=demand, update_seconds=8)
     )
     config = service_config(UnityConfig("unitysim:3DBall"), registry, horizon=8)
     with RolloutService(config, actor_factory, learner) as service:
-        back_during_update = 0  # run() calls that came back while the 15 s update ran
+        back_during_update = 0  # run() calls that came back while the 8 s update ran
         for _ in range(120):
             service.run(seconds=0.5)
             summary = ray_session.get(learner.summary.remote())

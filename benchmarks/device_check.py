@@ -1,0 +1,167 @@
+"""The GPU and many-core checks of the learner, in one run of at most 8 minutes, one JSON.
+
+For a machine with one GPU and many cores that already has the project's dependencies
+(``../shared/offline-gpu/`` carries them to an offline one). Four stages, each a
+benchmark of this folder in its own process under a hard timeout, in this order:
+
+- ``learner``: ``bench_learner.py`` on the CPU and the GPU, float32 and bfloat16, the 3DBall
+  MLP and 84x84x3 cameras (``simple``, ``nature_cnn``): PPO samples/s. Goals: nature_cnn
+  on the GPU >= 100,000; the MLP on the GPU >= the CPU's.
+- ``scale``: ``bench_scale.py --delay-ms 0`` at 1 and ``--workers`` workers, counting and PPO
+  learners. Goal: PPO >= 0.8 of the counting learner's rate at ``--workers``.
+- ``arena``: ``unity-rollout train`` on AnimalArena, ``--workers`` workers, the learner on
+  the GPU, ``nvidia-smi`` sampled every second. Goals: mean reward 0.9 within 25 s of
+  launch; the GPU's SM busy >= 50% while the learner updates (the samples above 0).
+- ``central``: ``bench_central.py``: how many workers at 600 agent-steps/s one learner
+  feeds. Goal: >= 256 (154k samples/s for 3DBall PPO).
+
+A stage that fails or times out is recorded with its log's tail; the others run on.
+
+    .venv/bin/python benchmarks/device_check.py [--out device-check.json]
+    .venv/bin/python benchmarks/device_check.py --quick --device cpu   # a dry run, ~3 min
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from bench_learning import scalars  # benchmarks/bench_learning.py
+from machine import machine  # benchmarks/machine.py
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+BUDGET_S = 480
+
+
+def run_stage(name: str, argv: list[str], timeout: float, out: Path) -> dict[str, Any]:
+    """One benchmark process; its JSON (``--json``) if it wrote one, else its log's tail."""
+    started = time.perf_counter()
+    log = out.with_suffix(f".{name}.log")
+    with log.open("w") as sink:
+        try:
+            code = subprocess.run(
+                argv, cwd=ROOT, stdout=sink, stderr=subprocess.STDOUT, timeout=timeout
+            ).returncode
+        except subprocess.TimeoutExpired:
+            code = "timeout"
+    result: dict[str, Any] = {"exit": code, "seconds": round(time.perf_counter() - started, 1)}
+    data = out.with_suffix(f".{name}.json")
+    if data.exists():
+        result["data"] = json.loads(data.read_text())
+    else:
+        result["log_tail"] = log.read_text()[-2000:]
+    return result
+
+
+class GpuSampler:
+    """``nvidia-smi``'s SM utilization every second, in a thread (nothing without a GPU)."""
+
+    def __init__(self) -> None:
+        self.samples: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> GpuSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        query = ["nvidia-smi", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits"]
+        while not self._stop.wait(1.0):
+            try:
+                line = subprocess.run(query, capture_output=True, text=True, timeout=5).stdout
+                self.samples.append(float(line.split()[0]))
+            except (OSError, ValueError, IndexError, subprocess.SubprocessError):
+                return
+
+
+def arena(args: argparse.Namespace, timeout: float, out: Path) -> dict[str, Any]:
+    """AnimalArena with the learner on ``--device``: time to 0.9 from launch, GPU busy."""
+    with tempfile.TemporaryDirectory() as results:
+        argv = [
+            sys.executable, "-m", "driver.cli", "train", "--env", "unitysim:AnimalArena",
+            "--workers", str(args.workers), "--cpus", str(args.cpus), "--device", args.device,
+            "--max-seconds", str(args.arena_seconds), "--results-dir", results,
+            "--run-id", "arena", "--no-progress",
+        ]  # fmt: skip
+        launched = time.time()
+        with GpuSampler() as gpu:
+            result = run_stage("arena", argv, timeout, out)
+        run_dir = Path(results) / "arena"
+        tag = "Environment/Cumulative Reward"
+        rewards = scalars(run_dir, tag) if run_dir.is_dir() else []
+    reached = next((t - launched for t, _, v in rewards if v >= 0.9), None)
+    busy = [s for s in gpu.samples if s > 0]
+    return {
+        **result,
+        "seconds_to_0.9": None if reached is None else round(reached, 1),
+        "final_reward": rewards[-1][2] if rewards else None,
+        "gpu_sm_busy_mean_while_updating": sum(busy) / len(busy) if busy else None,
+        "gpu_sm_samples": gpu.samples,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", type=Path, default=Path("device-check.json"))
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--workers", type=int, default=14)
+    parser.add_argument("--cpus", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--arena-seconds", type=int, default=60)
+    parser.add_argument("--quick", action="store_true", help="small stages: a dry run")
+    args = parser.parse_args()
+    if args.quick:
+        args.workers, args.arena_seconds = 2, 20
+    out = args.out.resolve()
+    python = sys.executable
+    devices = ["cpu"] if args.device == "cpu" else ["cpu", args.device]
+    deadline = time.perf_counter() + BUDGET_S
+
+    def left(share: float) -> float:
+        return max(10.0, min(share, deadline - time.perf_counter() - 5))
+
+    encoders = ["simple"] if args.quick else ["simple", "nature_cnn"]
+    stages: dict[str, Any] = {"machine": machine(), "args": {**vars(args), "out": str(out)}}
+    stages["learner"] = run_stage(
+        "learner",
+        [python, str(HERE / "bench_learner.py"), "--rounds", "1", "--updates", "2",
+         "--devices", *devices, "--encoders", *encoders, "--mixed-precision",
+         "--json", str(out.with_suffix(".learner.json"))],
+        left(60 if args.quick else 150), out,
+    )  # fmt: skip
+    stages["scale"] = run_stage(
+        "scale",
+        [python, str(HERE / "bench_scale.py"), "--delay-ms", "0", "--workers", "1",
+         str(args.workers), "--learners", "counting", "ppo", "--rounds", "1",
+         "--seconds", "5" if args.quick else "10", "--warmup", "3", "--cpus", str(args.cpus),
+         "--json", str(out.with_suffix(".scale.json"))],
+        left(90 if args.quick else 150), out,
+    )  # fmt: skip
+    stages["arena"] = arena(args, left(args.arena_seconds + 40), out)
+    stages["central"] = run_stage(
+        "central",
+        [python, str(HERE / "bench_central.py"), "--seconds", "4" if args.quick else "8",
+         "--build-rate", "50", "--agents", "12", "--cpus", str(args.cpus),
+         "--json", str(out.with_suffix(".central.json"))],
+        left(60), out,
+    )  # fmt: skip
+    out.write_text(json.dumps(stages, indent=2))
+    print(json.dumps({k: v.get("exit") for k, v in stages.items() if isinstance(v, dict)}))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
