@@ -89,13 +89,17 @@ def renumbered(collected: Any, number: int, version: int) -> list[Any]:
     return [replayed(segment, version, ("bench", number)) for segment in collected]
 
 
-def ingestion_in_process(kind: str, recorded: list[Any], seconds: float) -> dict[str, Any]:
+def ingestion_in_process(
+    kind: str, recorded: list[Any], seconds: float, device: str = "cpu"
+) -> dict[str, Any]:
     import torch
 
+    from learners.devices import Compute
     from learners.learner import CentralLearner
 
     torch.set_num_threads(1)
-    learner = CentralLearner(load_config(CONFIG_DIR / LEARNER_CONFIGS[kind]), torch_threads=1)
+    config = load_config(CONFIG_DIR / LEARNER_CONFIGS[kind])
+    learner = CentralLearner(config, torch_threads=1, compute=Compute.of(device))
     learner.prepare()
     number = 0
     while learner.stats.updates < 2:  # warm up: first update's allocations
@@ -117,8 +121,11 @@ def ingestion_in_process(kind: str, recorded: list[Any], seconds: float) -> dict
     }
 
 
-def ingestion_actor(kind: str, recorded: list[Any], seconds: float) -> dict[str, Any]:
-    learner = learner_actor(load_config(CONFIG_DIR / LEARNER_CONFIGS[kind]), 10**9)
+def ingestion_actor(
+    kind: str, recorded: list[Any], seconds: float, device: str = "cpu"
+) -> dict[str, Any]:
+    config = load_config(CONFIG_DIR / LEARNER_CONFIGS[kind])
+    learner = learner_actor(config, 10**9, device=device)
     try:
         number, version, in_flight = 0, 0, []
 
@@ -161,6 +168,7 @@ def main() -> None:
     parser.add_argument("--build-rate", type=float, default=50.0, help="exchanges/s per build")
     parser.add_argument("--agents", type=int, default=12, help="agents per build")
     parser.add_argument("--cpus", type=int, default=os.cpu_count() or 2)
+    parser.add_argument("--device", default="cpu", help="the learner's: cpu, cuda, cuda:N")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
 
@@ -168,12 +176,14 @@ def main() -> None:
     results: dict[str, Any] = {"machine": machine(), "routing": [], "ingestion": []}
     recorded = {kind: record(kind, 8, registry) for kind in LEARNER_CONFIGS}
     for kind in LEARNER_CONFIGS:
-        results["ingestion"].append(ingestion_in_process(kind, recorded[kind], args.seconds))
+        ingested = ingestion_in_process(kind, recorded[kind], args.seconds, args.device)
+        results["ingestion"].append(ingested)
         print(json.dumps(results["ingestion"][-1]), flush=True)
     ray.init(num_cpus=args.cpus, include_dashboard=False, log_to_driver=False)
     try:
         for kind in LEARNER_CONFIGS:
-            results["ingestion"].append(ingestion_actor(kind, recorded[kind], args.seconds))
+            ingested = ingestion_actor(kind, recorded[kind], args.seconds, args.device)
+            results["ingestion"].append(ingested)
             print(json.dumps(results["ingestion"][-1]), flush=True)
         for n in args.workers:
             results["routing"].append(routing(n, args.seconds, registry))

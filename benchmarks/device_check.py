@@ -18,7 +18,7 @@ benchmark of this folder in its own process under a hard timeout, in this order:
 A stage that fails or times out is recorded with its log's tail; the others run on.
 
     .venv/bin/python benchmarks/device_check.py [--out device-check.json]
-    .venv/bin/python benchmarks/device_check.py --quick --device cpu   # a dry run, ~3 min
+    .venv/bin/python benchmarks/device_check.py --quick --device cpu   # a dry run, ~5 min
 """
 
 from __future__ import annotations
@@ -138,9 +138,10 @@ def main() -> None:
     stages["learner"] = run_stage(
         "learner",
         [python, str(HERE / "bench_learner.py"), "--rounds", "1", "--updates", "2",
-         "--devices", *devices, "--encoders", *encoders, "--mixed-precision",
+         "--devices", *devices, "--encoders", *encoders,
+         *([] if args.quick else ["--mixed-precision"]),
          "--json", str(out.with_suffix(".learner.json"))],
-        left(60 if args.quick else 150), out,
+        left(90 if args.quick else 140), out,
     )  # fmt: skip
     stages["scale"] = run_stage(
         "scale",
@@ -154,9 +155,10 @@ def main() -> None:
     stages["central"] = run_stage(
         "central",
         [python, str(HERE / "bench_central.py"), "--seconds", "4" if args.quick else "8",
-         "--build-rate", "50", "--agents", "12", "--cpus", str(args.cpus),
+         "--workers", "2" if args.quick else "8", "--build-rate", "50", "--agents", "12",
+         "--cpus", str(args.cpus), "--device", args.device,
          "--json", str(out.with_suffix(".central.json"))],
-        left(60), out,
+        left(120 if args.quick else 90), out,
     )  # fmt: skip
     out.write_text(json.dumps(stages, indent=2))
     print(json.dumps({k: v.get("exit") for k, v in stages.items() if isinstance(v, dict)}))

@@ -149,3 +149,32 @@ def test_mixed_precision_runs_the_image_encoders_in_bfloat16_and_the_rest_in_flo
     assert seen["conv"] == ({torch.bfloat16} if mixed else {torch.float32})
     assert seen["trunk"] == {torch.float32}
     assert all(torch.isfinite(torch.tensor(v)) for v in report.values())
+
+
+@pytest.mark.parametrize("encoder", ["simple", "nature_cnn", "resnet", "match3", "fully_connected"])
+@pytest.mark.parametrize(
+    ("trainer", "actions"), [("ppo", (0, (3,))), ("impala", (0, (3,))), ("sac", (2, ()))]
+)
+def test_mixed_precision_updates_every_trainer_and_encoder(trainer, actions, encoder):
+    """bfloat16 autocast through every trainer's whole update, value estimates included,
+    for each of ML-Agents' image encoders (on the CPU: the same autocast code as CUDA's)."""
+    from mlagents_envs.base_env import DimensionProperty, ObservationSpec
+    from mlagents_envs.base_env import ObservationType as Obs
+
+    pixels = (DimensionProperty.NONE, *(DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,) * 2)
+    from learners.encoders import MIN_SIZE
+
+    side = MIN_SIZE[encoder]  # the smallest image each encoder takes: the cheapest update
+    camera = ObservationSpec((3, side, side), pixels, Obs.DEFAULT, "camera")
+    spec = BehaviorSpec([camera, VECTOR], ActionSpec(*actions))
+    hyper = {"batch_size": 8, "buffer_size": 16, "num_epoch": 1}
+    if trainer == "sac":
+        hyper = {"batch_size": 8, "buffer_init_steps": 0, "steps_per_update": 8}
+    network = {"vis_encode_type": encoder, "hidden_units": 16}
+    behavior = {"trainer_type": trainer, "hyperparameters": hyper, "network_settings": network}
+    config = parse_config({"behaviors": {"B": behavior}})
+    learner = CentralLearner(config, compute=Compute("cpu", mixed_precision=True))
+    learner.submit([segment(spec, 2, 9, behavior="B?team=0", seed=2)])
+    reports = learner.drain_reports()
+    assert reports, "no update ran"
+    assert all(torch.isfinite(torch.tensor(v)) for v in reports[-1][2].values())
