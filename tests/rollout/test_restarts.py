@@ -83,7 +83,7 @@ def allocator(tmp_path):
 )
 def test_a_fault_on_every_launch_costs_restarts_not_the_run(allocator, flags, timeout_wait):
     """Each launch gives good steps, then crashes (or hangs: found within ``timeout_wait``
-    and killed at once); after ten such restarts collection goes on, and no player is left."""
+    and killed at once); after six such restarts collection goes on, and no player is left."""
     config = UnityConfig(
         "unitysim:3DBall",
         additional_args=flags,
@@ -93,13 +93,13 @@ def test_a_fault_on_every_launch_costs_restarts_not_the_run(allocator, flags, ti
     collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
     players: set[int] = set()
     try:
-        while collector.snapshot().restarts < 10:
+        while collector.snapshot().restarts < 6:
             collector.collect(min_steps=200)
             players.add(collector.unity.player_pid)
         assert sum(len(s) for s in collector.collect(min_steps=200)) >= 200
     finally:
         collector.close()
-    assert len(players) >= 10
+    assert len(players) >= 6
     assert all(wait_gone(pid, 10.0) for pid in players)
     assert collector.snapshot().dropped_steps > 0  # partial rows of each failed player
 
