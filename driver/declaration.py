@@ -119,26 +119,16 @@ def add_arguments(parser: argparse.ArgumentParser, kind: type) -> None:
             parser.add_argument(
                 how.positional, nargs="?", default=argparse.SUPPRESS, help=help, action=_Given
             )
-        if how.negative:
-            parser.add_argument(
-                how.negative,
-                dest=item.name,
-                action=_Given,
-                nargs=0,
-                const=False,
-                default=default,
-                help=help,
-            )
-            continue
         scalar = _scalar(hints[item.name])
         names = (flag(item.name), *how.aliases)
-        if scalar is bool:
+        if how.negative or scalar is bool:  # a switch: no value follows
+            switch = (how.negative,) if how.negative else names
             parser.add_argument(
-                *names,
+                *switch,
                 dest=item.name,
                 action=_Given,
                 nargs=0,
-                const=True,
+                const=not how.negative,
                 default=default,
                 help=help,
             )

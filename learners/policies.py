@@ -175,10 +175,7 @@ class ActorCritic(nn.Module):
         if initial is None:
             rng = np.random.default_rng(int(torch.randint(2**31 - 1, ())))
             initial = initial_weights(spec, settings, rng)
-        missing, unexpected = self.load_state_dict(
-            {k: torch.from_numpy(v) for k, v in initial.items()}, strict=False
-        )
-        assert not unexpected and all(".net." in k for k in missing), (missing, unexpected)
+        self.load_state_dict({k: torch.from_numpy(v) for k, v in initial.items()})
         # the learner's mixed precision (``devices.Compute.autocast``): images in bfloat16
         self.autocast: Callable[[], AbstractContextManager[Any]] = contextlib.nullcontext
 

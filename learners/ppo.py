@@ -31,6 +31,7 @@ are dropped from the loss (they still serve as GAE context) and counted.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -116,10 +117,8 @@ class Steps:
 
     @classmethod
     def of(cls, rows: Rows, advantage: torch.Tensor, value_target: torch.Tensor) -> Steps:
-        return cls(
-            rows.obs, rows.continuous, rows.discrete, rows.mask, rows.log_prob, advantage,
-            value_target,
-        )  # fmt: skip
+        fields = (rows.obs, rows.continuous, rows.discrete, rows.mask, rows.log_prob)
+        return cls(*fields, advantage, value_target)
 
     def __getitem__(self, index: torch.Tensor) -> Steps:
         def pick(tensor: torch.Tensor | None) -> torch.Tensor | None:
@@ -226,7 +225,7 @@ class PPO:
         """V of many rows, in chunks of about ``VALUE_CHUNK_BYTES`` of float input, so a
         large observation is never converted whole."""
         rows = len(next(iter(obs.values())))
-        width = sum(o[0].numel() for o in obs.values()) * 4 if rows else 1
+        width = sum(math.prod(o.shape[1:]) for o in obs.values()) * 4  # bytes as float32
         chunk = max(1, VALUE_CHUNK_BYTES // max(width, 1))
         parts = [
             self.network.state_value({n: o[i : i + chunk] for n, o in obs.items()})

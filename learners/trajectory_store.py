@@ -57,11 +57,8 @@ class Rows:
 class TrajectoryStore:
     """Preallocated columns; ``add`` appends a segment, ``take`` hands all rows over."""
 
-    def __init__(
-        self, rows: int, device: torch.device | str = "cpu", what: str = "buffer_size"
-    ) -> None:
-        self.wanted_rows = rows
-        self.what = what  # the setting that sizes the store, for the error
+    def __init__(self, buffer_size: int, device: torch.device | str = "cpu") -> None:
+        self.buffer_size = buffer_size
         self.device = torch.device(device)
         self.columns: dict[str, torch.Tensor] = {}
         self.ends: dict[str, torch.Tensor] = {}
@@ -79,7 +76,7 @@ class TrajectoryStore:
         ends = truncated.nonzero().squeeze(-1)
         next_obs = {name: value[ends] for name, value in segment[keys.NEXT, keys.OBS].items()}
         if not self.columns:
-            self._allocate(fields, next_obs, self.wanted_rows + min(4 * count, self.wanted_rows))
+            self._allocate(fields, next_obs, self.buffer_size + min(4 * count, self.buffer_size))
         self._fit(self.rows + count, self.end_count + len(ends))
         for name, value in fields.items():
             self.columns[name][self.rows : self.rows + count].copy_(value, non_blocking=True)
@@ -149,10 +146,10 @@ class TrajectoryStore:
         free = free_memory(self.device)
         if free is not None and need + UPDATE_HEADROOM > free:
             raise BufferTooLarge(
-                f"{self.what} {self.wanted_rows} needs about {_gb(need + UPDATE_HEADROOM)} of "
+                f"buffer_size {self.buffer_size} needs about {_gb(need + UPDATE_HEADROOM)} of "
                 f"learner memory ({step:,} bytes per step, observations kept once, and "
                 f"{_gb(UPDATE_HEADROOM)} for the update), and the learner's {self.device} has "
-                f"{_gb(free)} free: lower {self.what}, or give the learner more memory"
+                f"{_gb(free)} free: lower buffer_size, or give the learner more memory"
             )
         for name, value in fields.items():
             self.columns[name] = self._empty(rows, value)
@@ -181,7 +178,8 @@ def _grown(tensor: torch.Tensor, rows: int, used: int) -> torch.Tensor:
 
 
 def _row_bytes(tensor: torch.Tensor) -> int:
-    return tensor[0].numel() * tensor.element_size() if len(tensor) else 0
+    """Bytes of one row, also of a tensor with none (a segment without a truncated end)."""
+    return math.prod(tensor.shape[1:]) * tensor.element_size()
 
 
 def _gb(count: int) -> str:
