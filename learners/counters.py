@@ -4,7 +4,8 @@ learner's Ray host counts the segments that arrive while its process still loads
 ``LearnerStats``: the learner's throughput counters. ``Sources``: which segment
 deliveries were taken, so that a retried one is taken once. ``all_done``: whether the
 run has its steps, ``steps_left`` how many it still needs. ``on_policy_wanted``: an
-on-policy learner's demand, steps still missing before its next update.
+on-policy behavior's demand, steps still missing before its next update; ``demand``: the
+learner's, bounded by what the run still needs.
 """
 
 from __future__ import annotations
@@ -22,10 +23,7 @@ if TYPE_CHECKING:
 def all_done(steps: Mapping[str, int], config: RunConfig, max_steps: int | None) -> bool:
     """Whether every behavior seen has its steps: ``max_steps`` (the CLI's ``--max-steps``)
     or else its config's ``max_steps``; none seen, not done."""
-    return bool(steps) and all(
-        count >= (max_steps or config.for_behavior(behavior).max_steps)
-        for behavior, count in steps.items()
-    )
+    return steps_left(steps, config, max_steps) == 0
 
 
 def steps_left(steps: Mapping[str, int], config: RunConfig, max_steps: int | None) -> int | None:
@@ -37,6 +35,23 @@ def steps_left(steps: Mapping[str, int], config: RunConfig, max_steps: int | Non
         max((max_steps or config.for_behavior(behavior).max_steps) - count, 0)
         for behavior, count in steps.items()
     )
+
+
+def demand(
+    steps: Mapping[str, int],
+    config: RunConfig,
+    max_steps: int | None,
+    wants: list[int],
+    inference: bool = False,
+) -> int | None:
+    """A learner's demand (``batches/contracts.py``): the least of its on-policy behaviors'
+    ``wants`` (None: none has one, or ``inference`` trains nothing), never more than the run
+    still needs (0: it has them all)."""
+    if (left := steps_left(steps, config, max_steps)) == 0:
+        return 0
+    if inference or not wants:
+        return None
+    return min(wants) if left is None else min(*wants, left)
 
 
 def on_policy_wanted(buffer_size: int, steps: int) -> int:

@@ -26,7 +26,7 @@ from batches.contracts import base_name
 from batches.segment import Segment
 from batches.specs import spec_from_dict
 from learners import checkpoint
-from learners.counters import LearnerStats, Sources, all_done, steps_left
+from learners.counters import LearnerStats, Sources, all_done, demand
 from learners.devices import Compute, to_cpu
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
@@ -139,14 +139,8 @@ class CentralLearner:
         workers back beyond it, so that update trains on fresh data, and the run stops
         within a collect of its ``max_steps``."""
         steps = {name: s.steps for name, s in self.behaviors.items()}
-        if (left := steps_left(steps, self.config, self.max_steps)) == 0:
-            return 0
-        if self.inference:
-            return None
         wants = [w for s in self.behaviors.values() if (w := s.algorithm.wanted()) is not None]
-        if not wants:
-            return None
-        return min(wants) if left is None else min(*wants, left)
+        return demand(steps, self.config, self.max_steps, wants, self.inference)
 
     def weights(self) -> tuple[int, dict[str, dict[str, np.ndarray]]]:
         """Numpy weights (a worker loads them without importing torch), copied off the

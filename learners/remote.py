@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from batches import keys
 from batches.segment import Segment
-from learners.counters import LearnerStats, Sources, all_done, on_policy_wanted, steps_left
+from learners.counters import LearnerStats, Sources, all_done, demand, on_policy_wanted
 from learners.trainers import trainer
 
 if TYPE_CHECKING:
@@ -129,18 +129,12 @@ class LearnerHost:
     def _early_wanted(self) -> int | None:
         """The on-policy demand of the behaviors seen so far, from their configs, as
         ``CentralLearner.wanted`` bounds it."""
-        if (left := steps_left(self._early_steps, self.config, self.max_steps)) == 0:
-            return 0
-        if self.inference:
-            return None
         wants = [
             on_policy_wanted(settings.hyperparameters.buffer_size, steps)
             for behavior, steps in self._early_steps.items()
             if trainer(settings := self.config.for_behavior(behavior)).waits_for_fresh_data
         ]
-        if not wants:
-            return None
-        return min(wants) if left is None else min(*wants, left)
+        return demand(self._early_steps, self.config, self.max_steps, wants, self.inference)
 
     def weights(self) -> tuple[int, dict[str, Any]]:
         with self._lock:
