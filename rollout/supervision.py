@@ -66,6 +66,7 @@ class WorkerSupervision:
             if isinstance(cause, WeightsLost):  # restarted: resend the weights
                 if index not in self._restarting:  # a death not seen yet (it was idle)
                     self._count_failure(index, error)
+                self._worker_version[index] = 0  # also when a retry had sent them before
                 self._idle.add(index)
                 return 0
             raise RolloutError(f"worker {index}: {last_line(cause)}") from None
@@ -80,6 +81,7 @@ class WorkerSupervision:
                     f"worker {index} did not come back within {self.config.restart_wait_s:.0f} s "
                     f"of its restart; last: {last_line(error)}"
                 ) from None
+            self._worker_version[index] = 0  # the weights this collect carried never arrived
             self._retry_at[index] = now + RETRY_PAUSE_S
             return 0
         if not isinstance(error, RayActorError | ObjectLostError):  # lost: with its node

@@ -32,9 +32,15 @@ def weights_lost() -> RayTaskError:
 
 
 def test_a_restart_seen_as_unavailable_then_weights_lost_is_one_failure():
+    """Each retry is a collect that carried the weights (the service's ``_issue`` marks the
+    worker as having them) and never arrived: the new incarnation must get them again, or it
+    answers every later collect with WeightsLost (seen in CI under load: a run that stalled)."""
     s = supervisor(max_restarts=1)
     s._collect_failed(0, None, ActorUnavailableError("restarting", None))
-    s._collect_failed(0, None, ActorUnavailableError("restarting", None))  # retried meanwhile
+    s._worker_version[0] = 20  # the retry carried the weights
+    s._collect_failed(0, None, ActorUnavailableError("restarting", None))
+    assert s._worker_version == [0]
+    s._worker_version[0] = 20  # the next retry too
     s._collect_failed(0, None, weights_lost())  # the new incarnation: resend the weights
     assert s.metrics.worker_restarts == 1 and s._failures == [1]
     assert 0 in s._idle and s._worker_version == [0]  # weights go out with the next collect
