@@ -64,6 +64,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from driver.run_dir import open_run, plan
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("driver.curriculum").setLevel(logging.INFO)  # lessons, as mlagents-learn
     try:
         planned = plan(from_arguments(TrainOptions, args))  # needs neither Ray nor torch
         if planned.loads_checkpoints:  # torch, to check them against the config

@@ -4,6 +4,7 @@ update reports and never touches segment data.
 
 Tags (docs/training.md lists them all): ``Environment/Cumulative Reward`` and
 ``Environment/Episode Length`` (episodes finished since the last summary),
+``Environment/Lesson Number/<parameter>`` (each curriculum's lesson),
 ``Losses/*`` and ``Policy/*`` (means over the updates since the last summary),
 ``Health/*`` (Unity restarts, dropped steps, policy lag), ``Perf/*`` (agent steps per
 second collected, samples per second consumed by the learner), and Unity's custom
@@ -118,6 +119,7 @@ class Summaries:
         self.first_reward_at: float | None = None  # wall clock of the first mean reward
         self._last_rate = (self.started, 0, 0, 0.0)
         self._faults = ServiceMetrics().faults()  # printed when they change (no live table)
+        self.lessons: Mapping[str, int] = {}  # environment parameter -> its lesson number
 
     def __enter__(self) -> Summaries:
         if self.live is not None:
@@ -220,6 +222,8 @@ class Summaries:
             if stat.values:
                 writer.add_histogram(f"{key}_hist", stat.values, step)
         window.unity_stats = {}
+        for name, number in self.lessons.items():
+            writer.add_scalar(f"Environment/Lesson Number/{name}", number, step)
         writer.add_scalar("Health/Unity Restarts", metrics.unity_restarts, step)
         writer.add_scalar("Health/Worker Restarts", metrics.worker_restarts, step)
         writer.add_scalar("Health/Learner Restarts", metrics.learner_restarts, step)
@@ -237,6 +241,7 @@ class Summaries:
                 f"{self.rates.get('collect', 0):,.0f} steps/s  "
                 f"learner {self.rates.get('learn', 0):,.0f} samples/s  "
                 f"lag {metrics.policy_lag_mean:.2f}\nfaults: {_faults_text(metrics.faults())}"
+                + "".join(f"\nlesson {n} of {name}" for name, n in self.lessons.items())
             ),
             title_justify="left",
         )

@@ -28,6 +28,7 @@ from ray.exceptions import RayActorError
 
 from batches.contracts import base_name
 from driver.checkpoints import Checkpoints
+from driver.curriculum import LessonPlan, lesson_plan
 from driver.declaration import TrainingError
 from driver.learner_keeper import LearnerKeeper, load_into
 from driver.local_ray import BackgroundRay, init_local_ray
@@ -67,9 +68,13 @@ class TrainResult:
     latest: dict[str, dict[str, float | None]]
 
 
-def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> UnityConfig:
+def unity_config(
+    options: TrainOptions, config: RunConfig, run_dir: Path, lessons: LessonPlan | None = None
+) -> UnityConfig:
     """What every Unity instance gets: the trainer config's engine_settings, the command
-    line's engine options over them (as mlagents-learn), the run's seed and arguments."""
+    line's engine options over them (as mlagents-learn), the run's seed and arguments, the
+    environment parameters of the run's lessons (the first ones, unless resumed)."""
+    lessons = lessons or lesson_plan(options, config, None)
     build = None if options.env == "editor" else options.env
     engine_fields = {f.name for f in dataclasses.fields(EngineSettings)}
     given = {k: v for k, v in config.engine.items() if k in engine_fields}
@@ -83,7 +88,7 @@ def unity_config(options: TrainOptions, config: RunConfig, run_dir: Path) -> Uni
         seed=options.seed,
         num_areas=options.num_areas,
         engine=EngineSettings(**given),
-        env_params=dict(config.environment_parameters),
+        env_params=lessons.values(),
         additional_args=options.env_args,
         log_folder=str(run_dir / "unity-logs"),
         restarts=options.restarts,
@@ -199,7 +204,8 @@ def train(
     options = planned.options  # with what the trainer config's run-level sections give
     start = planned.start or open_run(planned)
     config, run_dir = planned.config, planned.run_dir
-    unity = unity_config(options, config, run_dir)
+    lessons = lesson_plan(options, config, start.resume)
+    unity = unity_config(options, config, run_dir, lessons)
     started_ray = False
     if starting is not None:
         starting.wait()
@@ -210,7 +216,7 @@ def train(
             init_local_ray(options.cpus)
         started_ray = True
     try:
-        return _run(options, config, unity, run_dir, start)
+        return _run(options, config, unity, run_dir, start, lessons)
     finally:
         if started_ray:
             ray.shutdown()
@@ -222,6 +228,7 @@ def _run(
     unity: UnityConfig,
     run_dir: Path,
     start: Start,
+    lessons: LessonPlan,
 ) -> TrainResult:
     resume = start.resume
     start_steps = {n: int(b["steps"]) for n, b in resume["behaviors"].items()} if resume else {}
@@ -236,7 +243,8 @@ def _run(
     )
     started = time.perf_counter()
     deadline = started + options.max_seconds if options.max_seconds else None
-    meta = {"env": options.env, "run_id": options.run_id}
+    meta = {"env": options.env, "run_id": options.run_id, "lessons": lessons.lessons}
+    lessons.log_lessons()
     notes = BehaviorNotes(config, unity.no_graphics)
     progress: dict[str, Any] = {"steps": {}, "version": 0}
     with (
@@ -255,6 +263,10 @@ def _run(
                 learner = keeper.learner
                 progress = ray.get(learner.progress.remote())
                 notes.report(metrics.specs)
+                changed, reset = lessons.update(progress["steps"], metrics.episode_totals())
+                if changed:
+                    service.set_environment_parameters(lessons.values(), reset)
+                summaries.lessons = lessons.lessons
                 summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
                 if due := checkpoints.due(progress["steps"]):
                     checkpoints.save(ray.get(learner.state_dict.remote(due)), meta)

@@ -9,18 +9,17 @@ so a typo fails with one line naming the dotted key (and the key probably meant)
   change the experiment silently).
 - Reported (``RunConfig.unsupported``, one ``logging.warning``): ML-Agents features we lack
   (memory, curiosity/GAIL/RND, self-play, behavioral cloning, ``threaded``, ``init_path``,
-  run-level ``env_settings`` ..., sampled or curriculum environment parameters); training
-  goes on without them. Values that ask for what we do anyway (``memory: null``,
-  ``deterministic: false``, ...) are not reported. All five of ML-Agents'
-  ``vis_encode_type`` values are implemented (``learners.encoders``).
+  run-level ``env_settings`` ...); training goes on without them. Values that ask for
+  what we do anyway (``memory: null``, ``deterministic: false``, ...) are not reported.
+  All five of ML-Agents' ``vis_encode_type`` values are implemented (``learners.encoders``).
+  Environment parameters (numbers, samplers, curricula) are read by ``learners.config_parameters``.
 """
 
 from __future__ import annotations
 
-import difflib
 import logging
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -29,6 +28,7 @@ from typing import Any
 import yaml
 
 from batches.contracts import base_name
+from batches.parameters import Curriculum
 from learners.config_keys import (
     ALWAYS,
     ENGINE,
@@ -44,9 +44,11 @@ from learners.config_keys import (
     TOP,
     TOP_UNSUPPORTED,
     ConfigError,
-    parse_number,
+    section,
     show,
+    unknown_key,
 )
+from learners.config_parameters import parse_environment_parameters
 from learners.devices import DeviceError, check_device
 from learners.settings import RunConfig, TrainerSettings
 from learners.trainers import TRAINERS
@@ -75,28 +77,6 @@ def _trainer_type_problem(value: object) -> str:
     return f"expected one of {', '.join(TRAINERS)}, got {show(value)}"
 
 
-def _unknown(path: str, key: object, known: Iterable[str]) -> ConfigError:
-    """An unknown key, with the closest known one when there is a likely match."""
-    names = sorted(known)
-    close = difflib.get_close_matches(str(key), names, n=1, cutoff=0.6)
-    hint = f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(names)}"
-    return ConfigError(
-        f"{path}.{key}: unknown key; {hint}" if path else f"{key}: unknown key; {hint}"
-    )
-
-
-def _mapping(path: str, value: object) -> Mapping[str, Any]:
-    """A section: a mapping with string keys; ``null`` (an empty YAML section) is empty."""
-    if value is None:
-        return {}
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"{path}: expected a mapping, got {show(value)}")
-    for key in value:
-        if not isinstance(key, str):
-            raise ConfigError(f"{path}.{key}: keys must be strings")
-    return value
-
-
 def _ignored_value(value: object, neutral: object) -> bool:
     """Whether an unsupported key's value is what we do anyway (so nothing to report)."""
     return neutral is not ALWAYS and value == neutral
@@ -119,12 +99,12 @@ class _Layer:
 
 def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[str]) -> _Layer:
     """Check one trainer-settings section against ``trainer_type`` (its own or inherited)."""
-    data = _mapping(path, raw)
+    data = section(path, raw)
     layer = _Layer()
     known = {*SECTIONS, *TOP, *TOP_UNSUPPORTED}
     for key in data:
         if key not in known:
-            raise _unknown(path, key, known)
+            raise unknown_key(path, key, known)
     if "trainer_type" in data:
         value = data["trainer_type"]
         if value not in TRAINERS:
@@ -140,7 +120,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
 
     hyper_path = f"{path}.hyperparameters"
     checks, extra = TRAINERS[trainer_type].hyperparameters, TRAINERS[trainer_type].unsupported
-    for key, value in _mapping(hyper_path, data.get("hyperparameters")).items():
+    for key, value in section(hyper_path, data.get("hyperparameters")).items():
         if key in checks:
             layer.hyper[key] = checks[key](f"{hyper_path}.{key}", value)
         elif key in extra:
@@ -153,35 +133,35 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
                 f"{hyper_path}.{key}: not a {trainer_type} hyperparameter ({only} only)"
             )
         else:
-            raise _unknown(hyper_path, key, {*checks, *extra})
+            raise unknown_key(hyper_path, key, {*checks, *extra})
 
     net_path = f"{path}.network_settings"
-    for key, value in _mapping(net_path, data.get("network_settings")).items():
+    for key, value in section(net_path, data.get("network_settings")).items():
         if key in NETWORK:
             layer.network[key] = NETWORK[key](f"{net_path}.{key}", value)
         elif key in NETWORK_UNSUPPORTED:
             if not _ignored_value(value, NETWORK_UNSUPPORTED[key]):
                 unsupported.append(f"{net_path}.{key}")
         else:
-            raise _unknown(net_path, key, {*NETWORK, *NETWORK_UNSUPPORTED})
+            raise unknown_key(net_path, key, {*NETWORK, *NETWORK_UNSUPPORTED})
 
     reward_path = f"{path}.reward_signals"
     if "reward_signals" in data:
-        layer.signals = set(_mapping(reward_path, data["reward_signals"]))
-    for key, value in _mapping(reward_path, data.get("reward_signals")).items():
+        layer.signals = set(section(reward_path, data["reward_signals"]))
+    for key, value in section(reward_path, data.get("reward_signals")).items():
         if key in REWARD_UNSUPPORTED:
             unsupported.append(f"{reward_path}.{key}")
         elif key == "extrinsic":
             signal_path = f"{reward_path}.extrinsic"
-            for name, item in _mapping(signal_path, value).items():
+            for name, item in section(signal_path, value).items():
                 if name in EXTRINSIC:
                     layer.extrinsic[name] = EXTRINSIC[name](f"{signal_path}.{name}", item)
                 elif name == "network_settings":
                     unsupported.append(f"{signal_path}.{name}")
                 else:
-                    raise _unknown(signal_path, name, {*EXTRINSIC, "network_settings"})
+                    raise unknown_key(signal_path, name, {*EXTRINSIC, "network_settings"})
         else:
-            raise _unknown(reward_path, key, {"extrinsic", *REWARD_UNSUPPORTED})
+            raise unknown_key(reward_path, key, {"extrinsic", *REWARD_UNSUPPORTED})
     return layer
 
 
@@ -233,22 +213,22 @@ def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSetti
 
 def _engine(raw: object, unsupported: list[str]) -> dict[str, float | int | bool]:
     engine: dict[str, float | int | bool] = {}
-    for key, value in _mapping("engine_settings", raw).items():
+    for key, value in section("engine_settings", raw).items():
         if key in ENGINE:
             engine[key] = ENGINE[key](f"engine_settings.{key}", value)
         elif key in ENGINE_UNSUPPORTED:
             unsupported.append(f"engine_settings.{key}")
         else:
-            raise _unknown("engine_settings", key, {*ENGINE, *ENGINE_UNSUPPORTED})
+            raise unknown_key("engine_settings", key, {*ENGINE, *ENGINE_UNSUPPORTED})
     return engine
 
 
 def _torch_device(raw: object) -> str | None:
     """``torch_settings.device`` (its only key in ML-Agents): auto, cpu, cuda or cuda:N."""
-    settings = _mapping("torch_settings", raw)
+    settings = section("torch_settings", raw)
     for key in settings:
         if key != "device":
-            raise _unknown("torch_settings", key, {"device"})
+            raise unknown_key("torch_settings", key, {"device"})
     device = settings.get("device")
     if device is None:
         return None
@@ -258,18 +238,23 @@ def _torch_device(raw: object) -> str | None:
         raise ConfigError(str(error)) from None
 
 
-def _environment_parameters(raw: object, unsupported: list[str]) -> dict[str, float]:
-    """Plain numbers; samplers and curricula (mappings) are reported and left out."""
-    parameters: dict[str, float] = {}
-    for key, value in _mapping("environment_parameters", raw).items():
-        path = f"environment_parameters.{key}"
-        if isinstance(value, Mapping) and ({"sampler_type", "curriculum"} & set(value)):
-            unsupported.append(path)
-        else:
-            parameters[key] = parse_number(
-                path, value, "a number (samplers and curricula unsupported)"
-            )
-    return parameters
+def _check_lesson_behaviors(
+    parameters: Mapping[str, Curriculum], behaviors: Mapping[str, TrainerSettings], source: str
+) -> None:
+    """A lesson that waits on a behavior the file does not configure may never end (the
+    build may still have it, trained with defaults): said once, as the run starts."""
+    for key, lessons in parameters.items():
+        for lesson in lessons:
+            criteria = lesson.completion_criteria
+            if criteria is not None and behaviors and criteria.behavior not in behaviors:
+                logger.warning(
+                    "%s: environment_parameters.%s lesson %s waits on behavior %s, which "
+                    "the file does not configure",
+                    source,
+                    key,
+                    lesson.name,
+                    criteria.behavior,
+                )
 
 
 def parse_config(data: object, source: str = "<config>") -> RunConfig:
@@ -279,7 +264,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
     known = {*RUN_KEYS, *RUN_SETTINGS, *RUN_UNSUPPORTED}
     for key in data:
         if key not in known:
-            raise _unknown("", key, known)
+            raise unknown_key("", key, known)
     unsupported = [key for key in RUN_UNSUPPORTED if key in data]
 
     # default_settings' unsupported keys are reported once, not per behavior inheriting them
@@ -290,7 +275,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
     default = _resolve("default_settings", default_type, [default_layer])
 
     behaviors: dict[str, TrainerSettings] = {}
-    for name, raw in _mapping("behaviors", data.get("behaviors")).items():
+    for name, raw in section("behaviors", data.get("behaviors")).items():
         path = f"behaviors.{name}"
         key = base_name(name)
         if not key or key in behaviors:
@@ -302,7 +287,8 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
         behaviors[key] = _resolve(path, trainer_type, given)
 
     engine = _engine(data.get("engine_settings"), unsupported)
-    parameters = _environment_parameters(data.get("environment_parameters"), unsupported)
+    parameters = parse_environment_parameters(data.get("environment_parameters"))
+    _check_lesson_behaviors(parameters, behaviors, source)
     torch_device = _torch_device(data.get("torch_settings"))
     reported = tuple(dict.fromkeys(unsupported))
     if reported:
@@ -311,7 +297,7 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
         behaviors=MappingProxyType(behaviors),
         default=default,
         engine=MappingProxyType(engine),
-        environment_parameters=MappingProxyType(parameters),
+        environment_parameters=parameters,
         unsupported=reported,
         source=source,
         torch_device=torch_device,

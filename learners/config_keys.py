@@ -4,9 +4,10 @@ we do not implement, with the value that asks for what we do anyway."""
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 SCHEDULES = ("linear", "constant")
@@ -22,6 +23,28 @@ def show(value: object) -> str:
     """``repr`` cut short, so a misplaced section still makes a one-line message."""
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
+
+
+def unknown_key(path: str, key: object, known: Iterable[str]) -> ConfigError:
+    """An unknown key, with the closest known one when there is a likely match."""
+    names = sorted(known)
+    close = difflib.get_close_matches(str(key), names, n=1, cutoff=0.6)
+    hint = f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(names)}"
+    return ConfigError(
+        f"{path}.{key}: unknown key; {hint}" if path else f"{key}: unknown key; {hint}"
+    )
+
+
+def section(path: str, value: object) -> Mapping[str, Any]:
+    """A section: a mapping with string keys; ``null`` (an empty YAML section) is empty."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{path}: expected a mapping, got {show(value)}")
+    for key in value:
+        if not isinstance(key, str):
+            raise ConfigError(f"{path}.{key}: keys must be strings")
+    return value
 
 
 # ---- value checks: each returns the parsed value or raises ConfigError at `path` ----------

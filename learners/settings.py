@@ -12,6 +12,7 @@ from types import MappingProxyType
 from typing import Any
 
 from batches.contracts import base_name
+from batches.parameters import Curriculum
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ class RunConfig:
     behaviors: Mapping[str, TrainerSettings]
     default: TrainerSettings  # default_settings over the built-in defaults
     engine: Mapping[str, float | int | bool]  # only the engine_settings keys given
-    environment_parameters: Mapping[str, float]
+    environment_parameters: Mapping[str, Curriculum]  # each parameter's lessons
     unsupported: tuple[str, ...]  # dotted paths of known keys we do not implement
     source: str = "<config>"
     torch_device: str | None = None  # torch_settings.device (None: --device, else auto)

@@ -25,6 +25,7 @@ import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
 from batches.contracts import Actor, ActorFactory, Weights
+from batches.parameters import Values
 from batches.segment import Segment
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
@@ -161,7 +162,11 @@ class Collector:
         """Per behavior, what this collector recorded and where it went (the ledger)."""
         return {
             behavior: Counts(
-                b.counters.steps, b.counters.emitted_steps, b.counters.lost_steps, b.in_progress()
+                b.counters.steps,
+                b.counters.emitted_steps,
+                b.counters.lost_steps,
+                b.in_progress(),
+                b.counters.reset_steps,
             )
             for behavior, b in self.builders.items()
         }
@@ -222,6 +227,16 @@ class Collector:
         self.unity.restart(f"{type(error).__name__}: {error}")
         self.metrics.restarts = self.unity.restarts
         self.unity.reset()
+
+    def set_parameters(self, values: Values, reset: bool) -> None:
+        """A new lesson's environment parameters; ``reset``: its ``require_reset``, so that
+        no episode runs on under the old values (rows in progress are dropped, as
+        mlagents-learn drops them)."""
+        self.unity.set_parameters(values)
+        if reset and self._started:
+            dropped = sum(b.drop_partial(lesson_reset=True) for b in self.builders.values())
+            self.metrics.dropped_steps += dropped
+            self.unity.reset()
 
     # --- metrics ------------------------------------------------------------------------
 

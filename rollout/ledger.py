@@ -8,7 +8,9 @@ arrived, what the learner took, and what was lost on the way:
 - ``player failure``: rows in progress when a Unity player crashed or hung;
 - ``worker death``: rows in progress in a worker that died (as of its last collect);
 - ``learner restart``: steps in flight to a learner that died, or acted with its weights;
-- ``shutdown``: rows in progress, and data not yet taken, when the run stopped.
+- ``shutdown``: rows in progress, and data not yet taken, when the run stopped;
+- ``lesson reset``: rows in progress when a curriculum lesson with ``require_reset``
+  reset Unity (as mlagents-learn, which also drops them).
 
 Steps a worker recorded after its last collect and before it died are in no count: the
 ledger is exact as of each incarnation's last word.
@@ -24,17 +26,19 @@ PLAYER_FAILURE = "player failure"
 WORKER_DEATH = "worker death"
 LEARNER_RESTART = "learner restart"
 SHUTDOWN = "shutdown"
-REASONS = (PLAYER_FAILURE, WORKER_DEATH, LEARNER_RESTART, SHUTDOWN)
+LESSON_RESET = "lesson reset"
+REASONS = (PLAYER_FAILURE, WORKER_DEATH, LEARNER_RESTART, SHUTDOWN, LESSON_RESET)
 
 
 @dataclass(frozen=True)
 class Counts:
-    """One behavior in one collector: ``produced == emitted + lost + in_progress``."""
+    """One behavior in one collector: ``produced == emitted + lost + reset + in_progress``."""
 
     produced: int = 0  # transitions recorded
     emitted: int = 0  # in rows handed out in segments
     lost: int = 0  # in rows thrown away when the player failed
     in_progress: int = 0  # in rows not finished yet
+    reset: int = 0  # in rows thrown away when a lesson reset Unity
 
 
 class Collected(list):  # a list: the learner takes it as its segments
@@ -115,6 +119,7 @@ class Ledger:
                 row = rows.setdefault((index, incarnation, behavior), Entry())
                 row.produced = c.produced
                 row.dropped[PLAYER_FAILURE] = c.lost
+                row.dropped[LESSON_RESET] = c.reset
         return rows
 
     def summary(self) -> dict[str, Any]:
@@ -148,7 +153,7 @@ class Ledger:
         dropped = Counter({PLAYER_FAILURE: 0})
         for entry in self._entries.values():
             dropped.update(entry.dropped)
-        dropped[PLAYER_FAILURE] = sum(
-            c.lost for counts in self._counts.values() for c in counts.values()
-        )
+        every = [c for counts in self._counts.values() for c in counts.values()]
+        dropped[PLAYER_FAILURE] = sum(c.lost for c in every)
+        dropped[LESSON_RESET] = sum(c.reset for c in every)
         return {reason: dropped[reason] for reason in REASONS}

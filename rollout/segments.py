@@ -72,6 +72,7 @@ class Counters:
     dropped_steps: int = 0  # transitions thrown away (e.g. the player crashed mid-row)
     emitted_steps: int = 0  # transitions handed out in rows
     lost_steps: int = 0  # recorded transitions in rows thrown away (player failure)
+    reset_steps: int = 0  # recorded transitions in rows thrown away (a lesson's reset)
     unmatched_terminals: int = 0  # terminal infos of agents that never acted
 
 
@@ -354,7 +355,7 @@ class SegmentBuilder:
 
     def in_progress(self) -> int:
         """Recorded transitions in rows not handed out yet: ``steps == emitted_steps +
-        lost_steps + in_progress()`` (the sample ledger, ``rollout.ledger``)."""
+        lost_steps + reset_steps + in_progress()`` (the sample ledger, ``rollout.ledger``)."""
         return int(self._f["length"][self._f["agent"] >= 0].sum())
 
     def drain_episodes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -364,12 +365,16 @@ class SegmentBuilder:
             return np.zeros(0), np.zeros(0, np.int64)
         return np.concatenate([r for r, _ in episodes]), np.concatenate([n for _, n in episodes])
 
-    def drop_partial(self) -> int:
-        """Forget every unfinished row (the player died): returns the steps dropped."""
+    def drop_partial(self, lesson_reset: bool = False) -> int:
+        """Forget every unfinished row (the player died, or a lesson reset Unity): returns
+        the steps dropped."""
         f = self._f
         active = f["agent"] >= 0
         lost = int(f["length"][active].sum())
-        self.counters.lost_steps += lost
+        if lesson_reset:
+            self.counters.reset_steps += lost
+        else:
+            self.counters.lost_steps += lost
         dropped = lost + int(f["pending"][active].sum())
         f["agent"][:] = -1
         f["length"][:] = 0

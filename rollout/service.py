@@ -33,6 +33,7 @@ import ray
 from ray.exceptions import ObjectLostError, RayActorError, RayError, RayTaskError
 
 from batches.contracts import ActorFactory
+from batches.parameters import Assignment, Values
 from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, steps_of
 from rollout.membership import Membership
 from rollout.segments import Horizons
@@ -78,6 +79,7 @@ class RolloutService(WorkerSupervision):
         self._reports = WorkerReports()
         self._stale: set[ray.ObjectRef] = set()  # collects acted by a dead learner's weights
         self._dead_learners: set[str] = set()  # actor ids of learners replaced
+        self._assignment: Assignment | None = None  # environment parameters after a lesson
         self._started = 0.0
         self.membership = (
             Membership(
@@ -182,10 +184,17 @@ class RolloutService(WorkerSupervision):
         weights = self._weights_ref if self._worker_version[index] < self._version else None
         steps = min_steps or self.config.min_steps
         ref = self.workers[index].collect.remote(
-            self._version, weights, steps, self.config.max_collect_s
+            self._version, weights, steps, self.config.max_collect_s, self._assignment
         )
         self._worker_version[index] = self._version
         self._collects[ref] = (index, steps)
+
+    def set_environment_parameters(self, values: Values, reset: bool = False) -> None:
+        """A lesson changed: every collect from now on carries the run's current values
+        (all of them: a worker Ray restarts starts from the first lesson's), and each
+        worker applies them once, between collects."""
+        number = self._assignment.number + 1 if self._assignment is not None else 1
+        self._assignment = Assignment(number, dict(values), reset)
 
     def _pump(self) -> None:
         """Give idle workers a collect, as far as the learner's demand reaches."""

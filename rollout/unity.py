@@ -50,6 +50,7 @@ from mlagents_envs.side_channel.environment_parameters_channel import (
 )
 from mlagents_envs.side_channel.stats_side_channel import StatsSideChannel
 
+from batches.parameters import Constant, Gaussian, Uniform, Value, Values, reseeded
 from rollout.builds import UnityError, resolve_build
 from rollout.communicator import LoopbackCommunicator
 from rollout.ports import PortAllocator
@@ -98,7 +99,7 @@ class UnityConfig:
     no_graphics: bool = False  # Unity's -nographics (mlagents-learn's default: off)
     no_graphics_monitor: bool = False  # worker 0 with graphics, the others without
     engine: EngineSettings = field(default_factory=EngineSettings)
-    env_params: Mapping[str, float] = field(default_factory=dict)
+    env_params: Values = field(default_factory=dict)  # the first lesson's, seeded per worker
     additional_args: tuple[str, ...] = ()
     log_folder: str | None = None
     restarts: RestartPolicy = field(default_factory=RestartPolicy)
@@ -121,6 +122,23 @@ def _guard_launcher(executable: str) -> str:
     )
     write_executable(path, text)
     return str(path.with_suffix(""))
+
+
+PLAYER_SEED_STRIDE = 7919  # sampler seeds of a restarted player, away from other workers'
+
+
+def send_parameter(channel: EnvironmentParametersChannel, key: str, value: Value) -> None:
+    """One parameter over Unity's side channel, as mlagents-learn's samplers ``apply``."""
+    if isinstance(value, Constant):
+        channel.set_float_parameter(key, value.value)
+    elif isinstance(value, Uniform):
+        channel.set_uniform_sampler_parameters(key, value.min_value, value.max_value, value.seed)
+    elif isinstance(value, Gaussian):
+        channel.set_gaussian_sampler_parameters(key, value.mean, value.st_dev, value.seed)
+    else:
+        channel.set_multirangeuniform_sampler_parameters(
+            key, [list(pair) for pair in value.intervals], value.seed
+        )
 
 
 # --- the mlagents subclasses ------------------------------------------------------------
@@ -210,6 +228,8 @@ class UnityInstance:
         self.port: int | None = None
         self.env: GuardedUnityEnvironment | None = None
         self._stats = StatsSideChannel()
+        self._parameters = EnvironmentParametersChannel()
+        self.parameters: Values = dict(config.env_params)  # sent to every player started
 
     @property
     def restarts(self) -> int:
@@ -222,11 +242,12 @@ class UnityInstance:
         port = self.allocator.lease() if self.executable else self.allocator.lease_port(EDITOR_PORT)
         engine = EngineConfigurationChannel()
         engine.set_configuration_parameters(**vars(config.engine))
-        params = EnvironmentParametersChannel()
         if config.log_folder:  # mlagents passes -logFile <folder>/Player-0.log
             Path(config.log_folder).mkdir(parents=True, exist_ok=True)
-        for key, value in config.env_params.items():
-            params.set_float_parameter(key, float(value))
+        # a restarted player draws a new stream; the channel holds these until the handshake
+        params = self._parameters = EnvironmentParametersChannel()
+        for key, value in self.parameters.items():
+            send_parameter(params, key, reseeded(value, PLAYER_SEED_STRIDE * self.restarts))
         try:
             self.env = GuardedUnityEnvironment(
                 self.executable,
@@ -330,6 +351,13 @@ class UnityInstance:
 
     def reset(self) -> None:
         self._require().reset()
+
+    def set_parameters(self, values: Values) -> None:
+        """New environment parameters (a lesson changed): the build reads them at its next
+        episode resets; kept for any player started later."""
+        self.parameters.update(values)
+        for key, value in values.items():
+            send_parameter(self._parameters, key, value)
 
     def step(self) -> None:
         self._require().step()

@@ -15,6 +15,7 @@ import sys
 import ray
 
 from batches.contracts import ActorFactory, Weights
+from batches.parameters import Assignment, Values, reseeded
 from rollout.collector import Collector, CollectorMetrics
 from rollout.ledger import Collected
 from rollout.ports import PortAllocator, PortRange
@@ -40,15 +41,18 @@ class RolloutWorker:
         if (torch := sys.modules.get("torch")) is not None:  # a factory that acts with torch
             torch.set_num_threads(1)  # one CPU per worker
         # Distinct seeds (else two workers replay the same episodes) and player logs.
+        self.seed_offset = 1000 * index
         unity = dataclasses.replace(
             unity,
-            seed=unity.seed + 1000 * index,
+            seed=unity.seed + self.seed_offset,
+            env_params=self._seeded(unity.env_params),
             log_folder=f"{unity.log_folder}/worker-{index}" if unity.log_folder else None,
             no_graphics=index != 0 if unity.no_graphics_monitor else unity.no_graphics,
         )
         allocator = PortAllocator(port_range, registry_dir)
         self.collector = Collector(unity, actor_factory, horizon, index, allocator)
         self._start_error: Exception | None = None
+        self._assignment = 0  # the number of the environment parameters applied
         restarted = ray.get_runtime_context().was_current_actor_reconstructed
         try:
             self.collector.start(restarted)
@@ -61,17 +65,27 @@ class RolloutWorker:
         published: tuple[int, Weights] | None,
         min_steps: int,
         max_seconds: float | None = None,
+        parameters: Assignment | None = None,
     ) -> Collected:
         """``published``: the learner's ``weights()`` result, (version, weights), or None
         when this worker already has the newest version. A restart that no call saw (the
-        worker died while idle) shows here: the service would otherwise never resend weights."""
+        worker died while idle) shows here: the service would otherwise never resend weights.
+        ``parameters``: the run's current lesson values, applied once (a restarted worker
+        starts from the first lesson's and takes the current ones here)."""
         if self._start_error is not None:
             raise self._start_error
+        if parameters is not None and parameters.number > self._assignment:
+            self._assignment = parameters.number
+            self.collector.set_parameters(self._seeded(parameters.values), parameters.reset)
         if published is None and self.collector.version < version:
             raise WeightsLost(f"worker has version {self.collector.version}, sent {version}")
         if published is not None:
             self.collector.load_weights(*published)
         return self.collector.collect(min_steps, max_seconds)
+
+    def _seeded(self, values: Values) -> Values:
+        """A sampler stream per worker (mlagents-learn gives every environment the same)."""
+        return {key: reseeded(value, self.seed_offset) for key, value in values.items()}
 
     def metrics(self) -> CollectorMetrics:
         return self.collector.snapshot()

@@ -67,6 +67,7 @@ class SyntheticWorker:
         published: tuple[int, Weights] | None,
         min_steps: int,
         max_seconds: float | None = None,
+        parameters: object = None,  # no build to send them to
     ) -> Collected:
         started = time.perf_counter()
         if published is not None:

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from batches.parameters import UNSEEDED, Constant, Uniform
 from learners.config import (
     CONFIG_DIR,
     ConfigError,
@@ -350,14 +351,15 @@ torch_settings: {device: cpu}
         "behaviors.Pyramids.network_settings.memory",
         "behaviors.Pyramids.reward_signals.curiosity",
         "behaviors.Pyramids.reward_signals.rnd",
-        "environment_parameters.gravity",
-        "environment_parameters.wall",
     }
     assert len(config.unsupported) == len(set(config.unsupported))
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1
     assert "behaviors.Pyramids.reward_signals.curiosity" in warnings[0].getMessage()
-    assert dict(config.environment_parameters) == {"mass": 1.5, "scale": 1.0}
+    values = {k: v[0].value for k, v in config.environment_parameters.items()}  # one lesson
+    assert values == {"mass": Constant(1.5), "scale": Constant(1.0), "wall": Constant(1.0)} | {
+        "gravity": Uniform(7.0, 12.0, UNSEEDED)  # the driver seeds it from the run's seed
+    }
     assert dict(config.engine) == {"time_scale": 20.0, "width": 84, "no_graphics": True}
     assert config.for_behavior("Pyramids").gamma == 0.99
     assert config.for_behavior("Pyramids").network_settings.vis_encode_type == "resnet"

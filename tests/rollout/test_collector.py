@@ -13,6 +13,7 @@ import torch
 from tensordict import TensorDict
 
 from batches import keys
+from batches.parameters import Constant
 from batches.specs import spec_from_dict, step_spec
 from learners.factory import actor_factory
 from rollout.collector import NO_AGENT_STEPS, Collector
@@ -273,5 +274,28 @@ def test_each_behavior_cuts_its_rows_at_its_own_time_horizon(allocator):
                     row.stop - row.start for row in rows
                 )
         assert max(lengths["Striker"]) == 5 and max(lengths["Goalie"]) == 9, lengths
+    finally:
+        collector.close()
+
+
+def test_a_lesson_with_require_reset_drops_rows_in_progress_and_resets_unity(allocator):
+    """As mlagents-learn on a lesson's ``require_reset``: rows in progress are dropped (the
+    ledger books them as "lesson reset"), Unity resets, and no episode goes on under the
+    old values; without it the values change at the build's next episode resets."""
+    unity = UnityConfig("unitysim:3DBall")
+    collector = Collector(unity, actor_factory, horizon=1000, allocator=allocator)
+    try:
+        collect(collector, 1)  # rows of 1000 steps: every agent's row is still in progress
+        counts = collector.counts()["3DBall?team=0"]
+        assert counts.in_progress > 0 and counts.reset == 0
+        collector.set_parameters({"mass": Constant(2.0)}, reset=False)
+        assert collector.counts()["3DBall?team=0"].in_progress == counts.in_progress
+        collector.set_parameters({"scale": Constant(1.5)}, reset=True)
+        after = collector.counts()["3DBall?team=0"]
+        assert after.in_progress == 0 and after.reset == counts.in_progress
+        assert after.produced == after.emitted + after.lost + after.reset + after.in_progress
+        assert collector.unity.parameters == {"mass": Constant(2.0), "scale": Constant(1.5)}
+        collect(collector, 1)  # and it goes on collecting
+        assert collector.counts()["3DBall?team=0"].produced > after.produced
     finally:
         collector.close()

@@ -14,7 +14,9 @@ class _Collect:
     def __init__(self, asked: list[int]) -> None:
         self.asked = asked
 
-    def remote(self, version: int, weights: object, steps: int, max_seconds: float) -> object:
+    def remote(
+        self, version: int, weights: object, steps: int, max_seconds: float, parameters: object
+    ) -> object:
         self.asked.append(steps)
         return object()  # stands in for the call's ObjectRef
 

@@ -1,10 +1,11 @@
 """The sample ledger's books (rollout.ledger), without Ray: produced = delivered + dropped,
-each drop with its reason, across a worker's restart and the run's end."""
+each drop with its reason, across a worker's restart, a lesson's reset and the run's end."""
 
 from __future__ import annotations
 
 from rollout.ledger import (
     LEARNER_RESTART,
+    LESSON_RESET,
     PLAYER_FAILURE,
     SHUTDOWN,
     WORKER_DEATH,
@@ -14,8 +15,10 @@ from rollout.ledger import (
 )
 
 
-def collected(incarnation: str, produced: int, emitted: int, lost: int = 0) -> Collected:
-    counts = Counts(produced, emitted, lost, produced - emitted - lost)
+def collected(
+    incarnation: str, produced: int, emitted: int, lost: int = 0, reset: int = 0
+) -> Collected:
+    counts = Counts(produced, emitted, lost, produced - emitted - lost - reset, reset)
     return Collected([], incarnation, {"B?team=0": counts})
 
 
@@ -29,7 +32,7 @@ def test_the_books_balance_through_a_restart_a_dead_learner_and_the_end():
     ledger.book(0, "b", {"B?team=0": 50}, "delivered")
     ledger.arrived(1, collected("c", 80, 70))
     ledger.book(1, "c", {"B?team=0": 70}, SHUTDOWN)  # collected, never taken
-    ledger.ended(1, SHUTDOWN, collected("c", 85, 70))  # 15 in progress at close
+    ledger.ended(1, SHUTDOWN, collected("c", 85, 70, reset=5))  # 10 in progress at close
     ledger.ended(0, SHUTDOWN, collected("b", 50, 50))
     summary = ledger.summary()
     assert summary["balanced"]
@@ -39,7 +42,8 @@ def test_the_books_balance_through_a_restart_a_dead_learner_and_the_end():
         PLAYER_FAILURE: 10,
         WORKER_DEATH: 30,
         LEARNER_RESTART: 20,
-        SHUTDOWN: 85,
+        SHUTDOWN: 80,
+        LESSON_RESET: 5,  # rows in progress when a lesson with require_reset reset Unity
     }
     assert summary["workers"]["0"]["B?team=0"]["produced"] == 150
     assert ledger.dropped_by_reason() == summary["dropped"]  # the live table's view

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from tests.unitysim.test_spec_envs import make
-from unitysim.envs.base import Actions, Output, SimEnv
+from unitysim.envs import load
+from unitysim.envs.base import Actions, Output, Parameters, SimEnv
+from unitysim.envs.walljump import SMALL
 
 
 def idle(env: SimEnv, output: Output) -> dict[str, Actions]:
@@ -110,3 +112,20 @@ def test_dungeon_escape_kill_key_door():
             break
     group_one = infos.agent_id[~infos.done & (infos.group_id == 1)].tolist()
     assert group_one == [36, 1, 2]  # the sacrificed agent is back as a new agent
+
+
+def test_walljump_heights_follow_the_environment_parameters_as_the_curriculum_sets_them():
+    """``WallJump_curriculum.yaml`` moves ``big_wall_height`` and ``small_wall_height``
+    through its lessons: each agent's wall is read from them at its episode begin (a
+    sampler drawn once per agent), in Unity units scaled by 1/4."""
+    draws = np.random.default_rng(3)
+    params = Parameters({"small_wall_height": 1.5, "big_wall_height": lambda: draws.uniform(0, 4)})
+    env = load("WallJump")(np.random.default_rng(0), 1, params)
+    env.reset()
+    for _ in range(3):  # later episode begins draw every configuration
+        env._begin(np.ones(len(env.wall), dtype=bool))
+        small = env.beh == SMALL
+        walls = env.wall * 4.0
+        assert set(np.round(walls[small], 6)) <= {0.0, 1.5}
+        big = walls[~small]
+        assert len(big) and (big >= 0).all() and (big <= 4).all() and len(set(big)) == len(big)

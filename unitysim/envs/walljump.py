@@ -1,9 +1,12 @@
 """WallJump: get over the wall to the goal, with a block if the wall is high (spec-faithful).
 
 Twenty-four platforms, one agent each. At every episode begin a platform draws its wall
-as ``WallJumpAgent`` does (``Random.Range(0, 5)``): 0 no wall, 1 a small wall the agent
-can jump (``small_wall_height``, 4), 2-4 a big wall (``big_wall_min_height`` ..
-``big_wall_max_height``, 8 .. 8) that needs the block pushed against it as a step. The
+as ``WallJumpAgent`` does (``Random.Range(0, 5)``): 0 no wall (``no_wall_height``, 0), 1 a
+small wall the agent can jump (``small_wall_height``, 4), 2-4 a big wall
+(``big_wall_height``, 8) that needs the block pushed against it as a step. Each height is
+read from the environment parameters at each episode begin, one draw per agent when it is
+a sampler, as the example's ``ConfigureAgent`` reads them (``WallJump_curriculum.yaml``
+moves them through its lessons). The
 agent then runs under ``SmallWallJump`` (no wall or small wall) or ``BigWallJump``. A
 switch shows in the messages as in the real build: the episode's terminal info under the
 old behavior, the next decision under the new one. All agents start under SmallWallJump
@@ -37,6 +40,8 @@ RAY_FIELD = (9.6, 50.0)  # rays leave over the open sides unseen
 RADIUS = 0.5
 LIMITS = limits((HALF[0], FAR), RADIUS)  # nothing holds an agent on the long sides
 SPEED = 3.0
+# the parameters of the wall configurations 0, 1 and 2-4, with the example's defaults
+WALL_HEIGHTS = (("no_wall_height", 0.0), ("small_wall_height", 4.0), ("big_wall_height", 8.0))
 GRAVITY = 9.81 * 2.5  # the example's gravity multiplier
 JUMP = np.sqrt(2.0 * GRAVITY * 1.5)
 BLOCK_TOP = 1.0
@@ -91,12 +96,11 @@ class WallJump(ArenaEnv):
             config = np.where(big, 2, self.rng.integers(0, 2, k))
         else:
             config = self.rng.integers(0, 5, k)
-        small = self.params.get("small_wall_height", 4.0) / 4.0
-        low = self.params.get("big_wall_min_height", 8.0) / 4.0
-        high = max(low, self.params.get("big_wall_max_height", 8.0) / 4.0)
-        self.wall[which] = np.select(
-            [config == 0, config == 1], [0.0, small], self.rng.uniform(low, high, k)
-        )
+        heights = [  # one draw per agent (a sampler draws anew on each read)
+            np.array([self.params.get(key, default) for _ in range(k)]) / 4.0
+            for key, default in WALL_HEIGHTS
+        ]
+        self.wall[which] = np.choose(np.minimum(config, 2), heights)
         self.beh[which] = np.where(config >= 2, BIG, SMALL)
         self.pos[which] = np.column_stack(
             [self.rng.uniform(-8.0, -5.0, k), self.rng.uniform(-3.0, 3.0, k)]
