@@ -1,7 +1,8 @@
-"""SAC for one behavior: continuous actions or a single masked discrete branch, with
-torchrl's ``TensorDictReplayBuffer`` and ``TanhNormal``; the losses written out in torch.
+"""SAC for one behavior: continuous actions, masked discrete branches, or both (hybrid),
+as ML-Agents' SAC trains them, with torchrl's ``TensorDictReplayBuffer`` and
+``TanhNormal``; the losses written out in torch.
 
-``add`` turns every step of a packed segment into a transition (obs, action,
+``add`` turns every step of a packed segment into a transition (obs, actions,
 reward * strength, next obs, terminated, done; discrete: the masks of both states) in a
 replay buffer of ``buffer_size`` steps. ``ready`` once it holds ``max(buffer_init_steps,
 batch_size)`` steps and ``steps_per_update`` new ones came. ``update`` takes one gradient
@@ -16,6 +17,13 @@ step per ``steps_per_update`` new steps (at most ``MAX_GRADIENT_STEPS``), each o
 - ``log alpha`` follows the "auto" target entropy (``-action dims``; discrete
   ``0.2 log(actions)``);
 - then the target Qs move by ``tau`` (Polyak).
+
+With several branches, as ML-Agents: a Q network outputs one value per action of every
+branch (given the continuous action, when there is one), ``Q(s, a)`` is the mean over
+branches of each branch's value of its action, ``V`` the mean over branches of each
+branch's expectation, the policy loss the sum over branches (plus the continuous part's),
+and each branch has its own entropy coefficient and target (``log_alpha``: the continuous
+part's first, then one per branch).
 
 The math is torchrl's ``SACLoss`` / ``DiscreteSACLoss`` (v2, two Q networks, l2), which
 this file used until 2026-11-25; written out, a gradient step on 3DBall's network takes
@@ -47,7 +55,8 @@ from learners.schedules import decay
 if TYPE_CHECKING:
     from learners.settings import TrainerSettings
 
-ACTION = "action"  # replay buffer: continuous float [c], or the discrete index (int64 [])
+# replay buffer: the continuous action (float [c]) and the discrete indices (int64 [k])
+CONTINUOUS_ACTION, DISCRETE_ACTION = "continuous_action", "discrete_action"
 MAX_GRADIENT_STEPS = 200  # per update() call, so one call stays short; the rest is dropped
 MASKED_LOGIT = -1e8  # finite, so p * log p is 0 (not nan) for masked actions
 DISCRETE_TARGET_ENTROPY_SCALE = 0.2  # ML-Agents' discrete_target_entropy_scale
@@ -55,7 +64,8 @@ TINY_PROBABILITY = 1e-8  # log p of a masked action in the target (its weight p 
 
 
 class QNetwork(nn.Module):
-    """Q(obs, action) -> [1] (continuous) or Q(obs) -> [actions] (discrete).
+    """Q(obs, continuous action) -> [1] (continuous) or [actions of every branch]
+    (discrete; hybrid: given the continuous action).
 
     Own encoders (the policy's ``vis_encode_type`` per image sensor, as ML-Agents gives
     each Q network its own body) over observations normalized with the policy's running
@@ -96,33 +106,27 @@ class SAC:
         self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
     ) -> None:
         self.compute = compute or Compute()
-        branches = network.branches
-        if (
-            (network.continuous and branches)
-            or len(branches) > 1
-            or not (network.continuous or branches)
-        ):
-            raise ValueError(
-                "SAC supports continuous actions or a single discrete branch; use ppo for "
-                f"hybrid or multi-branch actions (got continuous={network.continuous}, "
-                f"branches={branches})"
-            )
+        self.branches = tuple(network.branches)
+        if not (network.continuous or self.branches):
+            raise ValueError("SAC needs actions: this behavior has none")
         self.network, self.settings = network, settings
         self.continuous = bool(network.continuous)
         h = settings.hyperparameters
         device = self.compute.torch_device
-        self.policy = PolicyParams(network)  # (loc, scale) or (logits,)
-        outputs, action_size = (1, network.continuous) if self.continuous else (branches[0], 0)
-        self.q = nn.ModuleList(QNetwork(network, outputs, action_size) for _ in range(2))
+        self.policy = PolicyParams(network)  # (loc, scale) and/or (logits of every branch,)
+        outputs = sum(self.branches) or 1
+        self.q = nn.ModuleList(QNetwork(network, outputs, network.continuous) for _ in range(2))
         self.q.to(device)
         self.q_target = copy.deepcopy(self.q).requires_grad_(False)
         for target, q in zip(self.q_target, self.q, strict=True):
             target.norms = q.norms  # the policy's running statistics, not frozen copies
-        self.log_alpha = torch.tensor(math.log(h.init_entcoef), device=device, requires_grad=True)
-        self.target_entropy = (
-            -float(network.continuous)
-            if self.continuous
-            else DISCRETE_TARGET_ENTROPY_SCALE * math.log(branches[0])
+        # one coefficient for the continuous part, one per branch: [parts]
+        targets = ([-float(network.continuous)] if self.continuous else []) + [
+            DISCRETE_TARGET_ENTROPY_SCALE * math.log(n) for n in self.branches
+        ]
+        self.target_entropy = torch.tensor(targets, device=device)
+        self.log_alpha = torch.full(
+            (len(targets),), math.log(h.init_entcoef), device=device, requires_grad=True
         )
         self.actor_optimizer = torch.optim.Adam(
             network.parameters(), lr=h.learning_rate, fused=True
@@ -157,15 +161,15 @@ class SAC:
         if not steps:
             return 0
         nxt = segment[keys.NEXT]
-        action = (
-            segment[keys.ACTION, keys.CONTINUOUS]
-            if self.continuous
-            else segment[keys.ACTION, keys.DISCRETE][..., 0]
-        )
+        actions = {}
+        if self.continuous:
+            actions[CONTINUOUS_ACTION] = segment[keys.ACTION, keys.CONTINUOUS]
+        if self.branches:
+            actions[DISCRETE_ACTION] = segment[keys.ACTION, keys.DISCRETE].long()
         transitions = TensorDict(
             {
                 keys.OBS: segment[keys.OBS],
-                ACTION: action,
+                **actions,
                 keys.NEXT: {
                     keys.OBS: nxt[keys.OBS],
                     keys.REWARD: nxt[keys.REWARD] * self.settings.reward_strength,
@@ -175,7 +179,7 @@ class SAC:
             },
             batch_size=segment.batch_size,
         )
-        if not self.continuous:
+        if self.branches:
             mask = segment[keys.ACTION_MASK]
             transitions[keys.ACTION_MASK] = mask
             transitions[keys.NEXT, keys.ACTION_MASK] = next_mask(mask, nxt[keys.DONE])
@@ -222,7 +226,7 @@ class SAC:
             "Losses/Q1 Loss": mean.get("q1", 0.0),
             "Losses/Q2 Loss": mean.get("q2", 0.0),
             "Losses/Entropy Coeff Loss": mean.get("alpha_loss", 0.0),
-            "Policy/Entropy Coeff": float(self.log_alpha.detach().exp()),
+            "Policy/Entropy Coeff": float(self.log_alpha.detach().exp().mean()),
             "Policy/Entropy": mean.get("entropy", 0.0),
             "Policy/Learning Rate": lr,
             "Policy/Extrinsic Value Estimate": mean.get("estimate", 0.0),
@@ -239,28 +243,35 @@ class SAC:
         obs = [batch[keys.OBS, name] for name in self.network.sensor_names]
         alpha = self.log_alpha.detach().exp()
         target = self.target(batch, alpha)  # its draw of a' comes first, as in torchrl's
+        stored = [batch[CONTINUOUS_ACTION]] if self.continuous else []
+        values = torch.stack([q(*obs, *stored) for q in self.q])  # [2, B, outputs]
+        taken = self._taken(values, batch)
+        params = self.policy(*obs)
+        neg_entropy: list[torch.Tensor] = []  # per part: E[log pi], [B]
+        policy_loss = torch.zeros((), device=alpha.device)
         if self.continuous:
-            taken = torch.stack([q(*obs, batch[ACTION]) for q in self.q]).squeeze(-1)
-            action, log_prob = self._sample(obs)
+            action, log_prob = self._sample(params[0], params[1])
             for param in self._q_params:  # the actor's gradient reaches the action only
                 param.requires_grad_(False)
-            policy_q = torch.stack([q(*obs, action) for q in self.q]).min(0).values.squeeze(-1)
+            policy_values = torch.stack([q(*obs, action) for q in self.q]).min(0).values
             for param in self._q_params:
                 param.requires_grad_(True)
-            policy_loss = (alpha * log_prob - policy_q).mean()
-            neg_entropy = log_prob.detach()
+            policy_loss = (alpha[0] * log_prob).mean()
+            neg_entropy.append(log_prob.detach())
+            if not self.branches:
+                policy_loss = policy_loss - policy_values.squeeze(-1).mean()
         else:
-            values = torch.stack([q(*obs) for q in self.q])  # [2, B, actions]
-            index = batch[ACTION].view(1, -1, 1).expand(2, -1, 1)
-            taken = values.gather(-1, index).squeeze(-1)
-            logits = masked_logits(self.policy(*obs)[0], batch.get(keys.ACTION_MASK))
-            log_prob = torch.log_softmax(logits, dim=-1)
-            prob = log_prob.exp()
-            policy_q = values.detach().min(0).values
-            policy_loss = (prob * (alpha * log_prob - policy_q)).sum(-1).mean()
-            neg_entropy = (prob * log_prob).sum(-1).detach()
+            policy_values = values.detach().min(0).values
+        if self.branches:
+            mask = batch.get(keys.ACTION_MASK)
+            parts = zip(self._log_probs(params[-1], mask), self._split(policy_values), strict=True)
+            for i, (log_prob, value) in enumerate(parts, start=int(self.continuous)):
+                prob = log_prob.exp()
+                policy_loss = policy_loss + (prob * (alpha[i] * log_prob - value)).sum(-1).mean()
+                neg_entropy.append((prob * log_prob).sum(-1).detach())
         errors = (taken - target).square().mean(-1)  # [2]: each Q's mean squared TD error
-        alpha_loss = -(self.log_alpha * (neg_entropy + self.target_entropy)).mean()
+        ent = torch.stack(neg_entropy, dim=-1)  # [B, parts]
+        alpha_loss = -(self.log_alpha * (ent + self.target_entropy)).mean(0).sum()
         for optimizer in self.optimizers:
             optimizer.zero_grad()
         (policy_loss + errors.sum() + alpha_loss).backward()
@@ -272,35 +283,69 @@ class SAC:
         return {
             "policy": policy_loss.detach(),
             "alpha_loss": alpha_loss.detach(),
-            "entropy": -neg_entropy.mean(),
+            "entropy": -ent.sum(-1).mean(),
             "q1": errors[0],
             "q2": errors[1],
             "estimate": taken.detach().mean(),
         }
 
+    def _split(self, values: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Q outputs (or logits) -> one tensor per branch."""
+        return torch.split(values, self.branches, dim=-1)
+
+    def _log_probs(self, logits: torch.Tensor, mask: torch.Tensor | None) -> list[torch.Tensor]:
+        """Each branch's masked log-softmax (masked actions: probability exactly 0)."""
+        masks = self._split(mask) if mask is not None else (None,) * len(self.branches)
+        return [
+            torch.log_softmax(masked_logits(part, m), dim=-1)
+            for part, m in zip(self._split(logits), masks, strict=True)
+        ]
+
+    def _taken(self, values: torch.Tensor, batch: TensorDict) -> torch.Tensor:
+        """Q of the stored actions, [2, B]: the mean over branches of each branch's value
+        of its action (ML-Agents' condensed Q); continuous only: the one output."""
+        if not self.branches:
+            return values.squeeze(-1)
+        actions = batch[DISCRETE_ACTION]
+        chosen = [
+            part.gather(-1, actions[:, i].view(1, -1, 1).expand(2, -1, 1)).squeeze(-1)
+            for i, part in enumerate(self._split(values))
+        ]
+        return torch.stack(chosen).mean(0)
+
     @torch.no_grad()
     def target(self, batch: TensorDict, alpha: torch.Tensor) -> torch.Tensor:
         """``r + gamma (1 - terminated) V(s')`` with the target Qs: ``V`` of a fresh
-        ``a' ~ pi(s')`` (continuous) or the expectation over the masked softmax."""
+        ``a' ~ pi(s')`` (continuous), the expectation over each branch's masked softmax
+        (discrete: their mean over branches), both for hybrid actions."""
         nxt = batch[keys.NEXT]
         next_obs = [nxt[keys.OBS, name] for name in self.network.sensor_names]
+        params = self.policy(*next_obs)
+        sampled: list[torch.Tensor] = []
         if self.continuous:
-            next_action, next_log_prob = self._sample(next_obs)
-            next_q = torch.stack([q(*next_obs, next_action) for q in self.q_target])
-            next_value = (next_q.squeeze(-1) - alpha * next_log_prob).min(0).values
+            next_action, next_log_prob = self._sample(params[0], params[1])
+            sampled = [next_action]
+        next_q = torch.stack([q(*next_obs, *sampled) for q in self.q_target])
+        if not self.branches:
+            next_value = (next_q.squeeze(-1) - alpha[0] * next_log_prob).min(0).values
         else:
-            logits = masked_logits(self.policy(*next_obs)[0], nxt.get(keys.ACTION_MASK))
-            next_prob = torch.softmax(logits, dim=-1)
-            next_log_prob = torch.where(next_prob == 0, TINY_PROBABILITY, next_prob).log()
-            next_q = torch.stack([q(*next_obs) for q in self.q_target]).min(0).values
-            next_value = (next_prob * (next_q - alpha * next_log_prob)).sum(-1)
+            branch_values = []
+            parts = zip(self._split(params[-1]), self._split(next_q.min(0).values), strict=True)
+            masks = self._split(nxt[keys.ACTION_MASK])
+            for i, ((logits, value), mask) in enumerate(zip(parts, masks, strict=True)):
+                next_prob = torch.softmax(masked_logits(logits, mask), dim=-1)
+                next_log = torch.where(next_prob == 0, TINY_PROBABILITY, next_prob).log()
+                a = alpha[i + int(self.continuous)]
+                branch_values.append((next_prob * (value - a * next_log)).sum(-1))
+            next_value = torch.stack(branch_values).mean(0)
+            if self.continuous:
+                next_value = next_value - alpha[0] * next_log_prob
         not_terminated = (~nxt[keys.TERMINATED]).squeeze(-1).to(next_value.dtype)
         reward = nxt[keys.REWARD].squeeze(-1)
         return reward + self.settings.gamma * not_terminated * next_value
 
-    def _sample(self, obs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    def _sample(self, loc: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A reparameterized tanh-squashed action in [-1, 1] and its log-probability."""
-        loc, scale = self.policy(*obs)
         dist = TanhNormal(loc, scale, low=-1.0, high=1.0)
         action = dist.rsample()
         return action, dist.log_prob(action)
@@ -329,8 +374,8 @@ class SAC:
             )
         self.q.load_state_dict(state["q"])
         self.q_target.load_state_dict(state["q_target"])
-        with torch.no_grad():
-            self.log_alpha.copy_(state["log_alpha"])
+        with torch.no_grad():  # (a checkpoint of one part may hold a scalar)
+            self.log_alpha.copy_(state["log_alpha"].reshape(self.log_alpha.shape))
         self.actor_optimizer.load_state_dict(state["actor_optimizer"])
         self.critic_optimizer.load_state_dict(state["critic_optimizer"])
         self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])

@@ -273,8 +273,9 @@ def test_a_port_range_too_small_names_what_holds_its_ports(fresh):
 
 
 def test_a_behavior_the_learner_cannot_train_is_one_line(fresh):
-    """SAC on hybrid actions (GridFoodCollector's), which it does not train yet: the
-    learner's refusal ends the run in one line, not a traceback."""
-    (fresh / "sac.yaml").write_text("behaviors:\n  GridFoodCollector:\n    trainer_type: sac\n")
-    argv = ["train", *BASIC, "--env", "unitysim:GridFoodCollector", "--config", "sac.yaml"]
-    check_error(fresh, argv, 1, "the learner: ValueError: SAC supports continuous actions")
+    """A buffer_size the learner's memory cannot hold (known only once the build's
+    observations are): the learner's refusal ends the run in one line, not a traceback."""
+    config = "behaviors:\n  Basic:\n    hyperparameters: {buffer_size: 100000000000}\n"
+    (fresh / "huge.yaml").write_text(config)
+    argv = ["train", *BASIC, "--config", "huge.yaml"]
+    check_error(fresh, argv, 1, "the learner: MemoryError: behavior Basic: buffer_size")

@@ -126,14 +126,61 @@ def test_next_mask_is_the_next_steps_mask_within_the_trajectory():
     assert result[3].tolist() == [True, True]  # the segment's end
 
 
-@pytest.mark.parametrize(
-    "continuous, branches", [(2, (3,)), (0, (3, 2)), (0, ())], ids=["hybrid", "2-branch", "none"]
-)
-def test_unsupported_action_spaces_fail_in_one_line(continuous, branches):
-    spec = vector_spec(4, continuous=continuous, branches=branches)
-    with pytest.raises(ValueError, match="SAC supports continuous actions or a single") as err:
-        SAC(ActorCritic(spec), settings())
-    assert "\n" not in str(err.value) and "use ppo" in str(err.value)
+def test_a_behavior_without_actions_fails_in_one_line():
+    with pytest.raises(ValueError, match=r"^SAC needs actions: this behavior has none$"):
+        SAC(ActorCritic(vector_spec(4)), settings())
+
+
+def hybrid_segment(spec):
+    """Branch 0's action 2 forbidden on every step, a few episode ends."""
+    batch = segment(spec, 8, 16)
+    batch[keys.ACTION_MASK][..., 2] = False
+    batch[keys.ACTION, keys.DISCRETE] = torch.stack(
+        [torch.randint(0, 2, (128,)), torch.randint(0, 2, (128,))], dim=-1
+    )
+    batch[keys.NEXT, keys.DONE][5::16] = True
+    batch[keys.NEXT, keys.TERMINATED][5::16] = True
+    return batch
+
+
+@pytest.mark.parametrize("continuous", [2, 0], ids=["hybrid", "2-branch"])
+def test_several_branches_and_hybrid_actions_as_mlagents_condenses_them(continuous):
+    """ML-Agents' SAC on GridFoodCollector (hybrid) and WallJump (4 branches): Q(s, a) is
+    the mean over branches of each branch's value of its action, each branch has its own
+    entropy coefficient and target, masked actions never enter the target, and a few
+    steps lower the Q losses."""
+    spec = vector_spec(6, continuous=continuous, branches=(3, 2))
+    sac = build(spec)
+    assert sac.log_alpha.shape == (int(bool(continuous)) + 2,)
+    expected = [math.log(3) * 0.2, math.log(2) * 0.2]
+    assert sac.target_entropy.tolist()[-2:] == pytest.approx(expected)
+    data = hybrid_segment(spec)
+    sac.add(data, no_lag(data))
+    batch = sac.buffer.sample()
+    obs = batch[keys.OBS, "vector"]
+    stored = [batch["continuous_action"]] if continuous else []
+    values = torch.stack([q(obs, *stored) for q in sac.q])
+    a = batch["discrete_action"]
+    by_hand = (
+        values[..., :3].gather(-1, a[:, :1].expand(2, -1, 1)).squeeze(-1)
+        + values[..., 3:].gather(-1, a[:, 1:].expand(2, -1, 1)).squeeze(-1)
+    ) / 2
+    torch.testing.assert_close(sac._taken(values, batch), by_hand)
+    alpha = sac.log_alpha.detach().exp()
+    before = sac.target(batch, alpha) if not continuous else None
+    if before is not None:  # no sampling: the masked action's value cannot matter
+        for q in sac.q_target:
+            q.body[-1].bias.data[2] += 100.0
+        blocked = ~batch[keys.NEXT, keys.ACTION_MASK][:, 2]  # (a trajectory's end: no mask)
+        assert blocked.any()
+        torch.testing.assert_close(sac.target(batch, alpha)[blocked], before[blocked])
+    first = floats(sac.gradient_step(batch))
+    for _ in range(60):
+        last = floats(sac.gradient_step(batch))
+    assert last["q1"] < first["q1"] and last["q2"] < first["q2"]
+    assert all(math.isfinite(v) for v in last.values())
+    moved = sac.log_alpha.detach()
+    assert len(set(moved.tolist())) == len(moved), "each part's coefficient moves on its own"
 
 
 @pytest.mark.parametrize("kind", ["continuous", "discrete"])
@@ -156,6 +203,8 @@ def test_state_dict_round_trip(kind):
     torch.testing.assert_close(other.q_target.state_dict(), sac.q_target.state_dict())
     initial = math.log(sac.settings.hyperparameters.init_entcoef)
     assert float(other.log_alpha.detach()) == float(sac.log_alpha.detach()) != initial
+    old = {**saved["algorithm"], "log_alpha": sac.log_alpha.detach()[0]}  # scalar, as before
+    other.load_state_dict(old)  # 2026-11-26's checkpoints: a scalar coefficient
     # Same batch, same noise: the next step (optimizer moments included) is identical.
     batch = sac.buffer.sample()
     torch.manual_seed(7)
@@ -287,8 +336,9 @@ def test_the_losses_are_torchrls_sac_losses(kind):
     sac.add(data, no_lag(data))
     reference = torchrl_loss(sac)  # its target Qs: copies of the Qs, as sac.q_target
     batch = sac.buffer.sample()
+    action = batch["continuous_action"] if kind == "continuous" else batch["discrete_action"][:, 0]
     torch.manual_seed(3)
-    expected = reference(batch.clone())
+    expected = reference(batch.clone().set("action", action))
     torch.manual_seed(3)
     got = floats(sac.gradient_step(batch.clone()))
     assert got["policy"] == pytest.approx(float(expected["loss_actor"]), rel=1e-5)
