@@ -12,7 +12,7 @@ from batches.parameters import UNSEEDED, Constant, Gaussian, MultiRangeUniform, 
 from learners.config import load_config, parse_config
 from learners.config_keys import ConfigError
 
-ANCHORS = Path(__file__).resolve().parents[2] / "benchmarks" / "mlagents_configs"
+ANCHORS = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo"
 
 
 def parameters(text: str):
@@ -20,12 +20,12 @@ def parameters(text: str):
 
 
 def test_the_anchor_configs_with_parameters_parse_with_nothing_reported():
-    randomize = load_config(ANCHORS / "ppo_3DBall_randomize.yaml")
+    randomize = load_config(ANCHORS / "3DBall_randomize.yaml")
     assert randomize.unsupported == ()
     assert [lesson.value for lesson in randomize.environment_parameters["mass"]] == [
         Uniform(0.5, 10.0, UNSEEDED)
     ]
-    curriculum = load_config(ANCHORS / "ppo_WallJump_curriculum.yaml")
+    curriculum = load_config(ANCHORS / "WallJump_curriculum.yaml")
     assert curriculum.unsupported == ()
     big = curriculum.environment_parameters["big_wall_height"]
     assert [lesson.name for lesson in big] == ["Lesson0", "Lesson1", "Lesson2", "Lesson3"]

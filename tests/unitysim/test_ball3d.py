@@ -264,3 +264,31 @@ def test_the_kernel_releases_every_buffer_it_takes() -> None:
         with pytest.raises(ValueError):
             kernel.act(actions, env.turn.T.copy(), *ball3d.TURN_PER_AXIS)
     assert [sys.getrefcount(a) for a in [*arrays, actions, obs]] == before
+
+
+def test_3dballhard_stacks_nine_velocity_free_frames_as_its_stacking_sensor():
+    """3DBallHard observes rotation z, x and the ball's relative position (5 values, no
+    velocity) over the last 9 decisions, oldest first, zeros after an episode begins; a
+    terminal row shows its final frame; the physics are 3DBall's."""
+    env = ball3d.Ball3DHard(np.random.default_rng(0), 1, Parameters())
+    (behavior,) = env.behaviors
+    assert behavior.name == "3DBallHard?team=0"
+    assert [(s.name, s.shape) for s in behavior.sensors] == [
+        ("StackingSensor_size9_VectorSensor_size5", (45,))
+    ]
+    first = env.reset()[behavior.name].obs[0]
+    assert first.shape == (12, 45) and not first[:, :40].any()  # only the first frame
+    plain = Ball3D(np.random.default_rng(0), 1, Parameters())
+    full = plain.reset()["3DBall?team=0"].obs[0]
+    np.testing.assert_array_equal(first[:, 40:], full[:, :5])  # the same, without velocity
+    frames = [first]
+    for _ in range(20):
+        tilt = Actions(np.full((12, 2), 0.3, np.float32), np.zeros((12, 0), np.int32))
+        out = env.step({behavior.name: tilt})
+        infos = out[behavior.name]
+        decided = infos.obs[0][~infos.done]
+        if len(decided) == 12:
+            frames.append(decided)
+    second, third = frames[1], frames[2]
+    np.testing.assert_array_equal(second[:, 35:40], first[:, 40:])  # shifted by one frame
+    np.testing.assert_array_equal(third[:, 30:40], second[:, 35:45])

@@ -41,6 +41,7 @@ from unitysim.envs.base import (
     Sensor,
     SimEnv,
 )
+from unitysim.envs.perception import FrameStack
 
 DT = 0.02  # Unity's fixed time step
 DECISION_PERIOD = 5
@@ -53,6 +54,7 @@ MAX_SIGMA = float(np.radians(MAX_TILT))
 TURN = float(np.radians(2.0))  # radians per physics step at full action
 SHOVE = 0.05  # how much of the platform's surface speed a (unit mass) ball picks up
 RESTING_TOLERANCE = 1e-6
+HARD_STACK = 9  # 3DBallHard: decisions stacked (the example's prefab)
 
 # Rows of the state array: signed tilts (radians), position (x, z, y), velocity (x, z, y).
 SIGMA, POS, VEL = slice(0, 2), slice(2, 5), slice(5, 8)
@@ -255,3 +257,40 @@ class Ball3D(SimEnv):
             return None
         self.reward[fell] = -1.0
         return fell
+
+
+class Ball3DHard(Ball3D):
+    """3DBallHard: the same platforms and physics, observed as the example's
+    ``Ball3DHardAgent`` observes them: no velocity (rotation z, x and the ball's position
+    relative to the platform, 5 values), stacked over the last 9 decisions by a
+    StackingSensor (oldest first, zeros after an episode begins), so a policy must infer
+    the ball's motion from the stack."""
+
+    name = "3DBallHard"
+    behaviors = (
+        Behavior(
+            "3DBallHard?team=0",
+            (Sensor.vector(f"StackingSensor_size{HARD_STACK}_VectorSensor_size5", 5 * HARD_STACK),),
+            continuous=2,
+        ),
+    )
+
+    def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
+        super().__init__(rng, num_areas, params)
+        self.stack = FrameStack(len(self.ids), HARD_STACK, 5)
+
+    def _begin_episodes(self, which: np.ndarray) -> None:
+        super()._begin_episodes(which)
+        self.stack.clear(which)
+
+    def _observe(self) -> np.ndarray:
+        """The stack with the current frame last, not yet kept: terminal rows show it
+        too, and only a decision moves the stack on."""
+        return np.concatenate([self.stack.buffer[:, 5:], super()._observe()[:, :5]], axis=1)
+
+    def _decisions(self) -> AgentInfos:
+        frames = self._observe()
+        self.stack.buffer[:] = frames
+        infos = AgentInfos.build(self.ids, [frames], reward=self.reward)
+        self.reward.fill(0.0)
+        return infos

@@ -1,0 +1,64 @@
+"""Acceptance for a user arriving from mlagents-learn: every one of ML-Agents' own example
+configs that needs neither POCA, memory, demonstrations nor intrinsic rewards
+(``tests/mlagents_configs/``, unchanged) runs on its unitysim environment in local mode
+with no unsupported-feature report, no other warning and no error, for a short budget of
+steps (how they learn is for the benchmarks)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+
+from driver.options import TrainOptions
+from driver.train import train
+from learners.config import load_config
+
+pytestmark = pytest.mark.integration
+
+CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
+FILES = sorted(CONFIGS.glob("*/*.yaml"))
+ENVIRONMENTS = {"FoodCollector": "GridFoodCollector"}  # the config's name -> unitysim's
+
+
+def environment(path: Path) -> str:
+    name = path.stem.split("_")[0]  # 3DBall_randomize, WallJump_curriculum: their example's
+    return ENVIRONMENTS.get(name, name)
+
+
+def test_the_copies_are_the_ones_the_issue_names():
+    assert [f"{p.parent.name}/{p.stem}" for p in FILES] == [
+        *(f"ppo/{n}" for n in ("3DBall", "3DBallHard", "3DBall_randomize", "Basic")),
+        *(f"ppo/{n}" for n in ("FoodCollector", "GridWorld", "Walker", "WallJump")),
+        "ppo/WallJump_curriculum",
+        *(f"sac/{n}" for n in ("3DBall", "3DBallHard", "Basic", "FoodCollector")),
+        *(f"sac/{n}" for n in ("GridWorld", "Walker", "WallJump")),
+    ]
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: f"{p.parent.name}/{p.stem}")
+def test_an_mlagents_example_config_runs_unchanged(path, ray_session, tmp_path, caplog):
+    assert load_config(path).unsupported == ()
+    options = TrainOptions(
+        env=f"unitysim:{environment(path)}",
+        config=str(path),
+        results_dir=str(tmp_path),
+        run_id="example",
+        max_steps=300,
+        max_seconds=60,  # a safety stop: the budget is the steps
+        workers=1,
+        progress=False,
+    )
+    with caplog.at_level(logging.WARNING):
+        result = train(options)
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert said == []
+    assert not result.interrupted
+    configured = set(load_config(path).behaviors)
+    assert {name.split("?")[0] for name in result.steps} == configured
+    assert all(steps >= 300 for steps in result.steps.values()), result.steps
+    if path.stem == "3DBall_randomize":  # the samplers reached the player, seeded as told
+        log = (result.run_dir / "unity-logs" / "worker-0" / "Player-0.log").read_text()
+        assert "environment parameter mass sampled (type 0, seed 0)" in log
+        assert "environment parameter scale sampled (type 0, seed 1)" in log
