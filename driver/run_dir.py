@@ -46,7 +46,12 @@ class Plan:
         """Whether opening the run reads checkpoints (torch), to check them against the
         config: the command line does that before it starts Ray, so a mismatch is one
         line before anything runs."""
-        return self.resume or self.options.initialize_from is not None
+        return self.resume or self.options.initialize_from is not None or self.init_paths
+
+    @property
+    def init_paths(self) -> bool:
+        """Whether a behavior of the config starts from a checkpoint (``init_path``)."""
+        return any(s.init_path for s in self.config.behaviors.values())
 
 
 def load_run_config(options: TrainOptions) -> RunConfig:
@@ -140,9 +145,12 @@ def open_run(plan: Plan) -> Start:
     start = Start()
     if plan.resume:
         start = Start(resume=_checkpoints("--resume", run_dir, plan))
-    elif options.initialize_from:
-        source = Path(options.results_dir) / options.initialize_from
-        start = Start(initial=_checkpoints("--initialize-from", source, plan))
+    elif options.initialize_from or plan.init_paths:
+        source, initial = None, None
+        if options.initialize_from:
+            source = Path(options.results_dir) / options.initialize_from
+            initial = _checkpoints("--initialize-from", source, plan)
+        start = Start(initial=_with_init_paths(initial, source, plan))
     _resolve(None if options.env == "editor" else options.env)
     try:  # before Unity and the learner start: a run that cannot write would lose its checkpoints
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -175,6 +183,37 @@ def _checkpoints(option: str, run_dir: Path, plan: Plan) -> dict[str, Any]:
         raise TrainingError(f"{option}: no checkpoint in {run_dir}/checkpoints") from None
     check_fits(state, plan.config, plan.options.seed, run_dir, option)
     return state
+
+
+def _with_init_paths(
+    initial: dict[str, Any] | None, source: Path | None, plan: Plan
+) -> dict[str, Any]:
+    """``initial`` (``--initialize-from``'s networks) with each ``init_path`` behavior's
+    own, as mlagents-learn: a checkpoint file or folder (a run's, or one behavior's), a
+    bare file name meaning that behavior's file in the ``--initialize-from`` run."""
+    from learners import checkpoint
+
+    behaviors = dict(initial["behaviors"]) if initial else {}
+    for name, settings in plan.config.behaviors.items():
+        if settings.init_path is None:
+            continue
+        where, path = f"behaviors.{name}.init_path", Path(settings.init_path)
+        if source is not None and len(path.parts) == 1:
+            found = sorted((source / "checkpoints").glob(f"{name}_team*/{path}"))
+            path = found[0] if found else source / "checkpoints" / name / path
+        try:
+            state = checkpoint.load(path)
+        except checkpoint.CheckpointError as error:
+            raise TrainingError(f"{where}: {error}") from None
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            raise TrainingError(f"{where}: no checkpoint at {path}") from None
+        own = {b: e for b, e in state["behaviors"].items() if base_name(b) == name}
+        if not own:
+            held = ", ".join(sorted(state["behaviors"])) or "nothing"
+            raise TrainingError(f"{where}: {path} holds no {name} checkpoint (it holds {held})")
+        behaviors.update(own)
+        check_fits({"behaviors": own}, plan.config, plan.options.seed, path.parent, where)
+    return {**(initial or {"version": 0}), "behaviors": behaviors}
 
 
 def check_fits(

@@ -145,7 +145,16 @@ NETWORK: dict[str, Check] = {
 NETWORK_UNSUPPORTED: dict[str, object] = {
     "memory": None,
 }
+
+
+def _optional_path(path: str, value: object) -> str | None:
+    if value is not None and (not isinstance(value, str) or not value.strip()):
+        raise ConfigError(f"{path}: expected a checkpoint's path, got {show(value)}")
+    return value
+
+
 TOP: dict[str, Check] = {
+    "init_path": _optional_path,  # a checkpoint to start this behavior from
     "max_steps": POSITIVE_INT,
     "time_horizon": POSITIVE_INT,
     "summary_freq": POSITIVE_INT,
@@ -153,7 +162,6 @@ TOP: dict[str, Check] = {
     "keep_checkpoints": POSITIVE_INT,
 }
 TOP_UNSUPPORTED: dict[str, object] = {
-    "init_path": None,
     "threaded": False,  # workers wait for each update's weights, as unthreaded ML-Agents
     "self_play": None,
     "behavioral_cloning": None,

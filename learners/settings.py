@@ -78,6 +78,7 @@ class TrainerSettings:
     summary_freq: int = 50_000
     checkpoint_interval: int = 500_000
     keep_checkpoints: int = 5
+    init_path: str | None = None  # a checkpoint (file or folder) this behavior starts from
 
 
 @dataclass(frozen=True)

@@ -201,6 +201,59 @@ def test_initializing_from_a_run_of_another_network_names_the_setting(with_run):
     check_error(with_run, argv, 2, fragment, before_ray=True)
 
 
+def with_init_path(root: Path, init_path: str, **network: int) -> str:
+    """config/Basic.yaml with behaviors.Basic.init_path (and network changes); its file."""
+    config = yaml.safe_load((ROOT / "config/Basic.yaml").read_text())
+    config["behaviors"]["Basic"]["init_path"] = init_path
+    config["behaviors"]["Basic"]["network_settings"].update(network)
+    (root / "init.yaml").write_text(yaml.safe_dump(config))
+    return "init.yaml"
+
+
+@pytest.mark.parametrize(
+    ("init_path", "network", "fragment"),
+    [
+        ("results/nothing.pt", {}, "behaviors.Basic.init_path: no checkpoint at results/nothing"),
+        (
+            "results/run/checkpoints/Basic_team0",
+            {"num_layers": 2},
+            "behaviors.Basic.init_path: Basic was trained with network_settings.num_layers 1",
+        ),
+    ],
+    ids=["missing", "another network"],
+)
+def test_an_init_path_that_cannot_start_the_behavior_is_one_line(
+    with_run, init_path, network, fragment
+):
+    config = with_init_path(with_run, init_path, **network)
+    argv = ["train", *BASIC, "--config", config, "--run-id", "new"]
+    check_error(with_run, argv, 2, fragment, before_ray=True)
+
+
+@pytest.mark.parametrize("how", ["folder", "file", "file name with --initialize-from"])
+def test_a_behavior_starts_from_its_init_path_as_mlagents_learn(with_run, how):
+    """ML-Agents' per-behavior ``init_path``: a checkpoint file or folder, or with
+    ``--initialize-from`` a file name in that run's folder of the behavior. The run
+    starts from those networks (none of their steps)."""
+    from driver.run_dir import open_run
+    from learners import checkpoint
+
+    folder = with_run / "results/run/checkpoints/Basic_team0"
+    file = checkpoint.newest_first(folder)[0]
+    init_path = {"folder": str(folder), "file": str(file)}.get(how, file.name)
+    config = with_init_path(with_run, init_path)
+    argv = ["train", *BASIC, "--config", str(with_run / config), "--run-id", "new"]
+    argv += ["--results-dir", str(with_run / "results")]
+    if how.endswith("--initialize-from"):
+        argv += ["--initialize-from", "run"]
+    start = open_run(plan(from_arguments(TrainOptions, cli.build_parser().parse_args(argv))))
+    assert start.resume is None and start.initial is not None
+    entry = start.initial["behaviors"]["Basic?team=0"]
+    saved = checkpoint.read(file)["behaviors"]["Basic?team=0"]
+    for name, tensor in saved["network"].items():
+        assert (entry["network"][name] == tensor).all(), name
+
+
 def test_and_initialized_from_a_fitting_run_it_plays_its_policy_in_inference(with_run):
     """What the mistake above was about, done right: the run starts from the other's
     networks (tests/learners/test_learner_modes.py checks the weights), trains on nothing

@@ -84,6 +84,7 @@ behaviors:
 UNITYSIM_BEHAVIORS = {
     "AnimalArena": {"AnimalArena"},
     "3DBall": {"3DBall"},
+    "3DBallHard": {"3DBallHard"},
     "Basic": {"Basic"},
     "GridWorld": {"GridWorld"},
     "StrikersVsGoalie": {"Striker", "Goalie"},
@@ -345,7 +346,6 @@ torch_settings: {device: cpu}
         config = parse(text)
     assert set(config.unsupported) == {
         "default_settings.threaded",
-        "behaviors.Pyramids.init_path",
         "behaviors.Pyramids.self_play",
         "behaviors.Pyramids.behavioral_cloning",
         "behaviors.Pyramids.network_settings.memory",
@@ -362,6 +362,7 @@ torch_settings: {device: cpu}
     }
     assert dict(config.engine) == {"time_scale": 20.0, "width": 84, "no_graphics": True}
     assert config.for_behavior("Pyramids").gamma == 0.99
+    assert config.for_behavior("Pyramids").init_path == "results/old"  # driver/run_dir.py
     assert config.for_behavior("Pyramids").network_settings.vis_encode_type == "resnet"
     assert config.run_settings["env_settings"] == {"num_envs": 4}  # the driver's options
 
