@@ -16,7 +16,7 @@ import json
 import logging
 import signal
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +26,7 @@ from typing import Any
 import ray
 from ray.exceptions import RayActorError
 
-from batches.contracts import base_name
+from driver.behavior_notes import BehaviorNotes
 from driver.checkpoints import Checkpoints
 from driver.curriculum import LessonPlan, lesson_plan
 from driver.declaration import TrainingError
@@ -36,7 +36,6 @@ from driver.options import TrainOptions
 from driver.run_dir import Plan, Start, open_run, plan
 from driver.startup import first_steps, startup_times
 from driver.summaries import Summaries
-from learners.config import DEFAULTS
 from learners.devices import DeviceError, learner_device
 from learners.factory import policy_factory
 from learners.remote import learner_actor
@@ -262,7 +261,7 @@ def _run(
                 metrics = service.run(seconds=0.5, report_every=0.5)
                 learner = keeper.learner
                 progress = ray.get(learner.progress.remote())
-                notes.report(metrics.specs)
+                notes.report(metrics.specs, metrics.group_rewarded())
                 changed, reset = lessons.update(progress["steps"], metrics.episode_totals())
                 if changed:
                     service.set_environment_parameters(lessons.values(), reset)
@@ -318,57 +317,6 @@ def _run(
         )
     )
     return result
-
-
-class BehaviorNotes:
-    """Says, once per behavior, what its settings mean for it: the defaults, when the
-    config does not name it (in mlagents-learn's words); blank cameras, when the build
-    runs without graphics."""
-
-    def __init__(self, config: RunConfig, no_graphics: bool) -> None:
-        self.config, self.no_graphics = config, no_graphics
-        self.seen, self.named = set[str](), set[str]()  # behaviors, and their config names
-
-    def _unconfigured(self, name: str) -> None:
-        """As mlagents-learn: without a file, the defaults and a warning; with one, its
-        default_settings, else a stop naming what to add."""
-        source = self.config.source
-        if source == DEFAULTS:
-            log.warning(
-                "Behavior name %s does not match any behaviors specified in the trainer "
-                "configuration file. A default configuration will be used.",
-                name,
-            )
-        elif self.config.default_given:
-            log.warning(
-                "%s is not among the behaviors of %s: it trains with default_settings",
-                name,
-                source,
-            )
-        else:
-            raise TrainingError(
-                f"the build's behavior {name} is not in {source}: add it under behaviors:, or "
-                "add a default_settings: section (mlagents-learn stops here too)"
-            )
-
-    def report(self, specs: Mapping[str, dict[str, Any]]) -> None:
-        for behavior, spec in specs.items():
-            if behavior in self.seen:
-                continue
-            self.seen.add(behavior)
-            name = base_name(behavior)
-            if name not in self.config.behaviors and name not in self.named:
-                self.named.add(name)
-                self._unconfigured(name)
-            images = [o["name"] for o in spec["observations"] if len(o["shape"]) == 3]
-            if self.no_graphics and images:
-                log.warning(
-                    "%s observes images (%s) and the build runs without graphics "
-                    "(engine_settings.no_graphics or --no-graphics): its cameras send blank "
-                    "frames (grid sensors are not rendered and stay as they are)",
-                    behavior,
-                    ", ".join(images),
-                )
 
 
 def _keep_what_was_learned(

@@ -50,6 +50,7 @@ class BehaviorStats:
     length_sum: int = 0
     rows: int = 0
     dropped_steps: int = 0
+    group_rewards: int = 0  # transitions with a nonzero group reward
 
 
 @dataclass
@@ -254,5 +255,6 @@ class Collector:
             stats.agent_steps = builder.counters.steps
             stats.rows = builder.counters.rows
             stats.dropped_steps = builder.counters.dropped_steps
+            stats.group_rewards = builder.counters.group_rewards
         stats = self.unity.drain_stats() if self.unity.env is not None else {}
         return dataclasses.replace(metrics, unity_stats=stats)  # each report: new ones only

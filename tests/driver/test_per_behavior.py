@@ -110,7 +110,7 @@ def spec(*shapes: tuple[int, ...]) -> dict:
 
 def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
     """As mlagents-learn: without a config file, a warning and the defaults."""
-    from driver.train import BehaviorNotes
+    from driver.behavior_notes import BehaviorNotes
 
     notes = BehaviorNotes(parse_config({}, "<defaults>"), no_graphics=False)
     with caplog.at_level(logging.WARNING):
@@ -126,8 +126,8 @@ def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
 def test_a_config_file_must_name_every_behavior_or_give_default_settings(caplog):
     """As mlagents-learn: a file without default_settings that lacks the build's behavior
     stops the run, naming what to add; with default_settings, those serve (and we say so)."""
+    from driver.behavior_notes import BehaviorNotes
     from driver.options import TrainingError
-    from driver.train import BehaviorNotes
 
     named = BehaviorNotes(parse_config(TWO, "two.yaml"), no_graphics=False)
     named.report({NAMES["Striker"]: spec((8,))})  # named: nothing to say
@@ -142,7 +142,7 @@ def test_a_config_file_must_name_every_behavior_or_give_default_settings(caplog)
 
 
 def test_cameras_without_graphics_are_a_warning(caplog):
-    from driver.train import BehaviorNotes
+    from driver.behavior_notes import BehaviorNotes
 
     with caplog.at_level(logging.WARNING):
         BehaviorNotes(parse_config(TWO), no_graphics=False).report(
@@ -154,3 +154,19 @@ def test_cameras_without_graphics_are_a_warning(caplog):
         )
     (said,) = [r.getMessage() for r in caplog.records]
     assert said.startswith("Striker?team=0 observes images (sensor0) and the build runs without")
+
+
+def test_group_rewards_a_trainer_does_not_use_are_a_warning_once(caplog):
+    """Issue 30: group rewards reach every segment, and PPO/SAC/IMPALA do not train on
+    them: said once per behavior, naming POCA, so that nobody believes they are used."""
+    from driver.behavior_notes import BehaviorNotes
+
+    notes = BehaviorNotes(parse_config(TWO), no_graphics=False)
+    with caplog.at_level(logging.WARNING):
+        notes.report({NAMES["Striker"]: spec((8,))}, set())
+        assert caplog.records == []
+        notes.report({NAMES["Striker"]: spec((8,))}, {NAMES["Striker"]})
+        notes.report({NAMES["Striker"]: spec((8,))}, {NAMES["Striker"]})
+    (said,) = [r.getMessage() for r in caplog.records]
+    assert said.startswith("Striker?team=0 receives group rewards, which trainer_type ppo")
+    assert "POCA" in said
