@@ -6,8 +6,9 @@ Starts ``unity-rollout train`` for ``--minutes`` in a session of its own and sam
 own (GCS, raylet, ...), the learner, the rollout workers and their Unity players. Reported
 per process (by role and pid): its memory after ``--warmup`` minutes, at the end, and the
 slope of a least-squares line over the samples after the warm-up, in MB per hour. The
-default run, unitysim SoccerTwos (two behaviors; its build sends a custom statistic with
-every goal), also sends Unity's StatsRecorder entries all run long.
+default run, unitysim Echo with the default PPO settings, is the hard case for anything
+kept per agent or per statistic: agents join and leave for good (new ids all run long),
+switch behaviors, and the build sends StatsRecorder entries at nearly every step.
 
     .venv/bin/python benchmarks/bench_memory_flat.py --minutes 60 --json /tmp/memory.json
 
@@ -33,12 +34,12 @@ from machine import machine  # benchmarks/machine.py
 
 ROOT = Path(__file__).resolve().parent.parent
 ROLES = (  # the first marker found in a process's command line names its role
+    ("-m driver.cli", "driver"),
     ("ray::RolloutWorker", "worker"),
     ("ray::RayLearner", "learner"),
-    ("unitysim", "player"),
+    ("unitysim play", "player"),
     ("gcs_server", "ray gcs"),
     ("raylet", "ray raylet"),
-    ("driver.cli", "driver"),
 )
 
 
@@ -73,10 +74,10 @@ def slope_per_hour(times: list[float], values: list[float]) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--env", default="unitysim:SoccerTwos")
+    parser.add_argument("--env", default="unitysim:Echo")
     parser.add_argument("--config", help="a trainer config (default: the env's in config/)")
     parser.add_argument("--minutes", type=float, default=60.0)
-    parser.add_argument("--warmup", type=float, default=5.0, help="minutes before the fit")
+    parser.add_argument("--warmup", type=float, default=10.0, help="minutes before the fit")
     parser.add_argument("--every", type=float, default=30.0, help="seconds between samples")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--json", help="write the results here too")
