@@ -119,14 +119,19 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
     ``ray start`` (``RAY_worker_niceness``; deploy/README.md). The object store fits
     /dev/shm (``object_store_bytes``). Ray gives its GCS server 30 s to come up; with every
     core taken by other work that start took longer, and the run died in ``ray.init``:
-    local mode waits up to 3 minutes unless the user set Ray's own variable."""
+    local mode waits up to 3 minutes unless the user set Ray's own variable. Without the
+    dashboard, workers report no task events: nothing would read them, and the GCS kept
+    them all run long."""
     os.environ.setdefault(GCS_WAIT, "180")
     options: dict[str, Any] = {
         "num_cpus": cpus,
         "include_dashboard": dashboard,
         "log_to_driver": False,
         "object_store_memory": object_store_bytes(_shm_free(), psutil.virtual_memory().total),
-        "_system_config": {"worker_niceness": 0},
+        # task events feed the dashboard's task list; kept in the GCS, they grew it by
+        # 190 MB in an hour of training (benchmarks/bench_memory_flat.py)
+        "_system_config": {"worker_niceness": 0}
+        | ({} if dashboard else {"task_events_report_interval_ms": 0}),
         # Ray's own lines (a local instance started, token auth on, no SIGTERM handler off
         # the main thread) say nothing a local run's user acts on, and would follow an
         # error found meanwhile; with the dashboard, its address is worth the line
