@@ -60,18 +60,20 @@ def test_walljumps_curriculum_moves_both_walls_through_every_lesson(ray_session,
     result = train(options)
     for worker, seed in ((0, 0), (1, 1000)):
         said = player_lines(result.run_dir, worker)
-        # lesson 0, then the newest lessons at each collect: the samplers' seeds are the
-        # run's (0) plus one per sampler in the file's order (big 0, 1, 2), moved by 1000
-        # per worker; the last lessons are constants
+        # lesson 0, then the newest lessons at each collect (a worker may skip one, and the
+        # last change may come after its last collect): the samplers' seeds are the run's
+        # (0) plus one per sampler in the file's order (big 0, 1, 2), moved by 1000 per worker
         assert said[:2] == [
             f"big_wall_height sampled (type 0, seed {seed})",
             "small_wall_height = 1.5",
         ]
+        assert len(said) > 2, f"worker {worker} never received a later lesson"
         sampled = {
             int(m) for m in re.findall(r"big_wall_height sampled .*seed (\d+)", "\n".join(said))
         }
-        assert sampled <= {seed, seed + 1, seed + 2} and len(sampled) >= 2
-        assert said[-2:] == ["big_wall_height = 8.0", "small_wall_height = 4.0"]
+        assert sampled <= {seed, seed + 1, seed + 2}
+        smalls = [float(v) for v in re.findall(r"small_wall_height = ([\d.]+)", "\n".join(said))]
+        assert smalls == sorted(smalls), "lessons only go up"
     state = checkpoint.load(result.checkpoint)
     assert state["meta"]["lessons"] == {"big_wall_height": 3, "small_wall_height": 3}
     seen = lesson_numbers(result.run_dir, "SmallWallJump_team0")
