@@ -256,6 +256,7 @@ def _run(
             start_steps=start_steps,
         ) as summaries,
     ):
+        summaries.lessons = lessons.lessons  # the plan's own dict: updated in place
         while not received:
             try:
                 metrics = service.run(seconds=0.5, report_every=0.5)
@@ -265,7 +266,6 @@ def _run(
                 changed, reset = lessons.update(progress["steps"], metrics.episode_totals())
                 if changed:
                     service.set_environment_parameters(lessons.values(), reset)
-                summaries.lessons = lessons.lessons
                 summaries.observe(metrics, progress, ray.get(learner.drain_reports.remote()))
                 if due := checkpoints.due(progress["steps"]):
                     checkpoints.save(ray.get(learner.state_dict.remote(due)), meta)

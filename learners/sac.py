@@ -263,8 +263,8 @@ class SAC:
         else:
             policy_values = values.detach().min(0).values
         if self.branches:
-            mask = batch.get(keys.ACTION_MASK)
-            parts = zip(self._log_probs(params[-1], mask), self._split(policy_values), strict=True)
+            log_probs = self._log_probs(params[-1], batch[keys.ACTION_MASK])
+            parts = zip(log_probs, self._split(policy_values), strict=True)
             for i, (log_prob, value) in enumerate(parts, start=int(self.continuous)):
                 prob = log_prob.exp()
                 policy_loss = policy_loss + (prob * (alpha[i] * log_prob - value)).sum(-1).mean()
@@ -293,9 +293,9 @@ class SAC:
         """Q outputs (or logits) -> one tensor per branch."""
         return torch.split(values, self.branches, dim=-1)
 
-    def _log_probs(self, logits: torch.Tensor, mask: torch.Tensor | None) -> list[torch.Tensor]:
+    def _log_probs(self, logits: torch.Tensor, mask: torch.Tensor) -> list[torch.Tensor]:
         """Each branch's masked log-softmax (masked actions: probability exactly 0)."""
-        masks = self._split(mask) if mask is not None else (None,) * len(self.branches)
+        masks = self._split(mask)  # add() stores a mask with every discrete transition
         return [
             torch.log_softmax(masked_logits(part, m), dim=-1)
             for part, m in zip(self._split(logits), masks, strict=True)
