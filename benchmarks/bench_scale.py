@@ -107,7 +107,7 @@ def one_run(
         horizon, ahead = 64, 0
     else:
         config = load_config(args.config)
-        learner = learner_actor(config, max_steps=10**9)
+        learner = learner_actor(config, max_steps=10**9, device=args.device)
         factory = policy_factory(config)
         settings = config.for_behavior("3DBall")
         horizon = settings.time_horizon
@@ -198,6 +198,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=float, default=5.0, help="after every worker delivered")
     parser.add_argument("--cpus", type=int, default=os.cpu_count() or 2, help="ray.init num_cpus")
     parser.add_argument("--config", type=Path, default=CONFIG_DIR / "3DBall.yaml")
+    parser.add_argument("--device", default="cpu", help="the PPO learner's: cpu, cuda, cuda:N")
     parser.add_argument(
         "--memory-minutes",
         type=float,

@@ -73,6 +73,8 @@ class VisualEncoder(nn.Module):
         if x.dim() > 4:
             lead = x.shape[:-3]
             return self.forward(x.reshape(-1, *x.shape[-3:])).reshape(*lead, -1)
+        if x.is_cuda:  # cuDNN's fast kernels are NHWC (``devices.Compute.place``)
+            x = x.contiguous(memory_format=torch.channels_last)
         return self.activation(self.dense(torch.flatten(self.body(x), 1)))
 
 

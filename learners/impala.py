@@ -17,12 +17,13 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torchrl.objectives import A2CLoss
 from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
 from batches import keys
 from learners.devices import Compute
+from learners.minibatch import set_learning_rate
 from learners.modules import (
     FLAT_ACTION,
     add_flat_action,
@@ -31,16 +32,35 @@ from learners.modules import (
     value_operator,
 )
 from learners.policies import ActorCritic
-from learners.ppo import (
-    actor_critic_report,
-    gradient_step,
-    means,
-    set_learning_rate,
-)
+from learners.ppo import actor_critic_report
 from learners.schedules import decay
 
 if TYPE_CHECKING:
     from learners.settings import TrainerSettings
+
+
+def gradient_step(
+    losses: TensorDictBase, optimizer: torch.optim.Optimizer, totals: dict[str, Any]
+) -> None:
+    """Sum a loss's ``loss_*`` entries, step with the gradient clipped to norm 0.5, and add
+    every entry's value to ``totals`` (as tensors: read once per update)."""
+    loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    for param in params:
+        param.grad = None
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(params, 0.5)
+    optimizer.step()
+    with torch.no_grad():
+        for key, value in losses.items():
+            totals[key] = totals.get(key, 0.0) + value.detach().mean()
+    totals["updates"] = totals.get("updates", 0) + 1
+
+
+def means(totals: dict[str, Any]) -> dict[str, float]:
+    """Per gradient step: the mean of each loss entry ``gradient_step`` added up."""
+    steps = max(int(totals.get("updates", 0)), 1)
+    return {key: float(value) / steps for key, value in totals.items()}
 
 
 class SegmentBuffer:
@@ -143,7 +163,7 @@ class IMPALA:
                 if len(index) < 2:
                     continue
                 steps = batch[index]
-                gradient_step(self.loss(steps), self.optimizer, totals, max_grad_norm=0.5)
+                gradient_step(self.loss(steps), self.optimizer, totals)
                 samples += len(steps)
                 rho_sum += float(steps["rho"].sum())
                 value_sum += float(steps["value_target"].sum())

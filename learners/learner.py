@@ -161,7 +161,7 @@ class CentralLearner:
         if behavior not in self.behaviors:
             settings = self.config.for_behavior(behavior)
             network = self.factory.network(behavior, spec_from_dict(spec))
-            network.to(self.compute.torch_device)
+            self.compute.place(network)
             network.autocast = self.compute.autocast
             self.behaviors[behavior] = BehaviorState(
                 spec, settings, network, make_algorithm(network, settings, self.compute)

@@ -32,16 +32,22 @@ are dropped from the loss (they still serve as GAE context) and counted.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict
 from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
 from learners.counters import on_policy_wanted
 from learners.devices import Compute
+from learners.minibatch import (
+    MinibatchStep,
+    adam,
+    load_optimizer,
+    plain_learning_rates,
+    set_learning_rate,
+)
 from learners.policies import ActorCritic
 from learners.schedules import BETA_END, EPSILON_END, decay
 from learners.trajectory_store import Rows, TrajectoryStore
@@ -53,39 +59,6 @@ VALUE_CHUNK_BYTES = 256 * 2**20
 
 
 # ---- pieces IMPALA shares -------------------------------------------------------------------
-
-
-def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
-    for group in optimizer.param_groups:
-        group["lr"] = lr
-
-
-def gradient_step(
-    losses: TensorDictBase | Mapping[str, torch.Tensor],
-    optimizer: torch.optim.Optimizer,
-    totals: dict[str, Any],
-    max_grad_norm: float | None = None,
-) -> None:
-    """Sum a loss's ``loss_*`` entries, step, and add every entry's value to ``totals``
-    (as tensors: read once per update, not once per step, which would wait on a GPU)."""
-    loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
-    params = [p for group in optimizer.param_groups for p in group["params"]]
-    for param in params:  # what zero_grad does, without its per-call wrapper
-        param.grad = None
-    loss.backward()
-    if max_grad_norm is not None:
-        torch.nn.utils.clip_grad_norm_(params, max_grad_norm)
-    optimizer.step()
-    with torch.no_grad():
-        for key, value in losses.items():
-            totals[key] = totals.get(key, 0.0) + value.detach().mean()
-    totals["updates"] = totals.get("updates", 0) + 1
-
-
-def means(totals: dict[str, Any]) -> dict[str, float]:
-    """Per gradient step: the mean of each loss entry ``gradient_step`` added up."""
-    steps = max(int(totals.get("updates", 0)), 1)
-    return {key: float(value) / steps for key, value in totals.items()}
 
 
 def actor_critic_report(mean: dict[str, float], lr: float, beta: float) -> dict[str, float]:
@@ -142,8 +115,11 @@ class PPO:
         self.network, self.settings = network, settings
         self.compute = compute or Compute()
         h = settings.hyperparameters
-        self.optimizer = torch.optim.Adam(network.parameters(), lr=h.learning_rate, fused=True)
+        self.optimizer = adam(network.parameters(), h.learning_rate, self.compute)
         self.store = TrajectoryStore(h.buffer_size, self.compute.torch_device)
+        self.step = MinibatchStep(self._minibatch_loss, self.optimizer, h.batch_size, self.compute)
+        self.steps: Steps | None = None  # the store's columns whole: what ``step`` reads
+        self._targets: torch.Tensor | None = None  # [2, capacity]: advantage, value target
         self.stale_steps = 0
 
     # --- data in ------------------------------------------------------------------------
@@ -180,15 +156,13 @@ class PPO:
         epsilon = decay(h.epsilon, progress, h.epsilon_schedule or schedule, EPSILON_END)
         beta = decay(h.beta, progress, h.beta_schedule or schedule, BETA_END)
         set_learning_rate(self.optimizer, lr)
-        totals: dict[str, Any] = {}
-        data = Steps.of(rows, advantage, value_target)
+        self.step.start(self._bind(advantage, value_target), epsilon, beta)
         for _ in range(h.num_epoch):
             order = train[torch.randperm(len(train), device=train.device)]
             for index in order.split(h.batch_size):
                 if len(index) == h.batch_size:
-                    losses = self.loss(data[index], epsilon, beta)
-                    gradient_step(losses, self.optimizer, totals)
-        mean = means(totals)
+                    self.step(index)
+        mean = self.step.means()
         return {
             **actor_critic_report(mean, lr, beta),
             "Policy/Epsilon": epsilon,
@@ -198,6 +172,25 @@ class PPO:
             "Policy/Stale Steps Dropped": float(self.stale_steps),
             "Policy/Samples": float(len(train)),
         }
+
+    def _bind(self, advantage: torch.Tensor, value_target: torch.Tensor) -> tuple[int, ...]:
+        """Point ``self.steps`` at the store's whole columns, with this update's advantages
+        and targets copied into buffers beside them; returns the addresses a graph reads."""
+        whole = self.store.whole()
+        if self._targets is None or self._targets.shape[1] != len(whole):
+            self._targets = torch.zeros(2, len(whole), device=self.compute.torch_device)
+        self._targets[0, : len(advantage)] = advantage
+        self._targets[1, : len(value_target)] = value_target
+        self.steps = Steps.of(whole, self._targets[0], self._targets[1])
+        fields = (*whole.obs.values(), whole.continuous, whole.discrete, whole.mask)
+        tensors = [t for t in (*fields, whole.log_prob, self._targets) if t is not None]
+        return tuple(t.data_ptr() for t in tensors)
+
+    def _minibatch_loss(
+        self, index: torch.Tensor, scalars: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        assert self.steps is not None
+        return self.loss(self.steps[index], scalars[0], scalars[1])
 
     def estimate(self, rows: Rows) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(value, advantage, value target) per row: GAE along each packed trajectory
@@ -233,9 +226,12 @@ class PPO:
         ]
         return torch.cat(parts) if parts else torch.zeros(0, device=self.compute.torch_device)
 
-    def loss(self, steps: Steps, epsilon: float, beta: float) -> dict[str, torch.Tensor]:
+    def loss(
+        self, steps: Steps, epsilon: float | torch.Tensor, beta: float | torch.Tensor
+    ) -> dict[str, torch.Tensor]:
         """ML-Agents' PPO loss on a minibatch: per-component clipped surrogate, squared
-        value error (weight 0.5), entropy bonus (weight ``beta``)."""
+        value error (weight 0.5), entropy bonus (weight ``beta``); epsilon and beta may be
+        0-dim tensors (a CUDA graph reads them there)."""
         log_prob, entropy, value = self.network.evaluate(
             steps.obs, steps.continuous, steps.discrete, steps.mask
         )
@@ -257,8 +253,10 @@ class PPO:
     # --- checkpoints --------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        return {"optimizer": self.optimizer.state_dict(), "stale_steps": self.stale_steps}
+        optimizer = plain_learning_rates(self.optimizer.state_dict())
+        return {"optimizer": optimizer, "stale_steps": self.stale_steps}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.optimizer.load_state_dict(state["optimizer"])
+        load_optimizer(self.optimizer, state["optimizer"])
+        self.step.drop_graph()
         self.stale_steps = int(state.get("stale_steps", 0))

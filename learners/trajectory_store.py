@@ -93,9 +93,16 @@ class TrajectoryStore:
 
     def take(self) -> Rows:
         """Every stored row (views, valid until the next ``add``); the store starts over."""
-        n, e = self.rows, self.end_count
+        rows = self._rows(self.rows, self.end_count)
         self.rows = self.end_count = self.train_steps = 0
+        return rows
 
+    def whole(self) -> Rows:
+        """The columns at their full capacity, whatever is stored: a CUDA graph reads rows
+        of them by index (``learners/minibatch.py``), and their addresses stay put."""
+        return self._rows(len(self.columns["log_prob"]), len(self.ends["row"]))
+
+    def _rows(self, n: int, e: int) -> Rows:
         def column(name: str) -> torch.Tensor | None:  # an optional field
             return self.columns[name][:n] if name in self.columns else None
 
