@@ -22,6 +22,7 @@ import json
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import torch
 from machine import machine  # benchmarks/machine.py
@@ -119,7 +120,12 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=2, help="timed updates per run")
     parser.add_argument("--devices", nargs="+", default=None, help="default: cpu, and cuda if any")
     parser.add_argument("--encoders", nargs="+", default=["simple"])
-    parser.add_argument("--mixed-precision", action="store_true", help="also runs with it on")
+    parser.add_argument(
+        "--mixed-precision",
+        nargs="*",
+        metavar="DEVICE",
+        help="also runs with it on (on these devices; none named: on every one)",
+    )
     parser.add_argument("--threads", type=int, default=None, help="torch threads (CPU)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -131,9 +137,10 @@ def main() -> None:
         for case in CASES
         for encoder in (args.encoders if case != "3DBall MLP" else ["simple"])
         for device in devices
-        for mixed in ([False, True] if args.mixed_precision else [False])
+        for mixed in ([False, True] if mixed_on(args.mixed_precision, device) else [False])
     ]
     runs: dict[str, list[float]] = {}
+    results: dict[str, Any] = summary(runs)
     for _ in range(args.rounds):
         for case, encoder, device, mixed in variants:
             name = f"{case} | {encoder} | {device}{' bf16' if mixed else ''}"
@@ -141,14 +148,10 @@ def main() -> None:
             result = measure(case, encoder if encoder != "-" else "simple", compute, args.updates)
             runs.setdefault(name, []).append(result["samples_per_s"])
             print(f"{name}: {result['samples_per_s']:,.0f} samples/s", flush=True)
-    best = {name: max(values) for name, values in runs.items()}
-    results = {
-        "machine": machine(),
-        "torch_threads": torch.get_num_threads(),
-        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
-        "runs": runs,
-        "best": best,
-    }
+            results = summary(runs)
+            if args.json:  # after every run: a stage cut short keeps what it measured
+                args.json.write_text(json.dumps(results, indent=2))
+    best = results["best"]
     print(json.dumps(results, indent=2))
     print("\n| network | encoder | device | samples/s (best) | vs the CPU |")
     print("|---|---|---|---|---|")
@@ -157,8 +160,21 @@ def main() -> None:
         cpu = best.get(f"{case} | {encoder} | cpu")
         ratio = f"{value / cpu:.1f}x" if cpu else "-"
         print(f"| {case} | {encoder} | {device} | {value:,.0f} | {ratio} |")
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
+
+
+def mixed_on(devices: list[str] | None, device: str) -> bool:
+    """``--mixed-precision`` as given: absent, with no device (every one), or some."""
+    return devices is not None and (not devices or device in devices)
+
+
+def summary(runs: dict[str, list[float]]) -> dict[str, Any]:
+    return {
+        "machine": machine(),
+        "torch_threads": torch.get_num_threads(),
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+        "runs": runs,
+        "best": {name: max(values) for name, values in runs.items()},
+    }
 
 
 if __name__ == "__main__":

@@ -178,7 +178,7 @@ def main() -> None:
         "learner",
         [python, str(HERE / "bench_learner.py"), "--rounds", "1", "--updates", "2",
          "--devices", *devices, "--encoders", *encoders,
-         *([] if args.quick else ["--mixed-precision"]),
+         *([] if args.quick else ["--mixed-precision", args.device]),
          "--json", str(out.with_suffix(".learner.json"))],
         left(90 if args.quick else 140), out,
     )  # fmt: skip
