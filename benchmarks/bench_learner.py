@@ -87,7 +87,9 @@ def with_encoder(config: RunConfig, encoder: str) -> RunConfig:
     return replace(config, behaviors=behaviors, default=default)
 
 
-def measure(case: str, encoder: str, compute: Compute, updates: int) -> dict[str, float]:
+def measure(
+    case: str, encoder: str, compute: Compute, updates: int, busy: bool = False
+) -> dict[str, float]:
     spec, config_file, pixels = CASES[case]
     config = load_config(CONFIG_DIR / config_file)
     settings = next(iter(config.behaviors.values()))  # the file's one behavior
@@ -105,13 +107,43 @@ def measure(case: str, encoder: str, compute: Compute, updates: int) -> dict[str
         learner.submit([segments[index % len(segments)]])
     if compute.device != "cpu":
         torch.cuda.synchronize()
-    return {
+    result = {
         "samples_per_s": (learner.stats.samples - samples0)
         / (learner.stats.update_seconds - seconds0),
         "seconds": time.perf_counter() - started,
         "epochs": settings.hyperparameters.num_epoch,
         "buffer_size": settings.hyperparameters.buffer_size,
     }
+    if busy and compute.device != "cpu":
+        result["gpu_busy"] = gpu_busy(learner, segments)
+    return result
+
+
+def gpu_busy(learner: CentralLearner, segments: list[Any]) -> float:
+    """The share of one update's wall time the GPU spends in kernels and copies
+    (``torch.profiler``'s device time, as its tables total it): "SM busy while the learner
+    updates", which nvidia-smi's samples cannot resolve for updates of tens of ms."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    algorithm = next(iter(learner.behaviors.values())).algorithm
+    index = 0
+    while not algorithm.ready():
+        segment = segments[index % len(segments)]
+        algorithm.add(segment, torch.zeros(segment.batch_size[0], dtype=torch.int64))
+        index += 1
+    cuda = torch.cuda.is_available()
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    sync()
+    activities = [ProfilerActivity.CPU, *([ProfilerActivity.CUDA] if cuda else [])]
+    with profile(activities=activities) as profiler:
+        started = time.perf_counter()
+        algorithm.update(0.5)
+        sync()
+        wall = time.perf_counter() - started
+    events = profiler.key_averages()
+    device_us = sum(e.self_device_time_total for e in events if e.device_type == DeviceType.CUDA)
+    return device_us / 1e6 / wall
 
 
 def main() -> None:
@@ -127,6 +159,9 @@ def main() -> None:
         help="also runs with it on (on these devices; none named: on every one)",
     )
     parser.add_argument("--threads", type=int, default=None, help="torch threads (CPU)")
+    parser.add_argument(
+        "--gpu-busy", action="store_true", help="last round: the GPU's busy share of an update"
+    )
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     if args.threads:
@@ -141,14 +176,21 @@ def main() -> None:
     ]
     runs: dict[str, list[float]] = {}
     results: dict[str, Any] = summary(runs)
-    for _ in range(args.rounds):
+    busy: dict[str, float] = {}
+    for round_ in range(args.rounds):
         for case, encoder, device, mixed in variants:
             name = f"{case} | {encoder} | {device}{' bf16' if mixed else ''}"
             compute = Compute.of(device, mixed)
-            result = measure(case, encoder if encoder != "-" else "simple", compute, args.updates)
+            profile = args.gpu_busy and round_ == args.rounds - 1
+            result = measure(
+                case, encoder if encoder != "-" else "simple", compute, args.updates, profile
+            )
             runs.setdefault(name, []).append(result["samples_per_s"])
             print(f"{name}: {result['samples_per_s']:,.0f} samples/s", flush=True)
-            results = summary(runs)
+            if "gpu_busy" in result:
+                busy[name] = result["gpu_busy"]
+                print(f"{name}: GPU busy {result['gpu_busy']:.0%} of an update", flush=True)
+            results = {**summary(runs), "gpu_busy": busy}
             if args.json:  # after every run: a stage cut short keeps what it measured
                 args.json.write_text(json.dumps(results, indent=2))
     best = results["best"]

@@ -4,15 +4,17 @@ For a machine with one GPU and many cores that already has the project's depende
 (``../shared/offline-gpu/`` carries them to an offline one). Four stages, each a
 benchmark of this folder in its own process under a hard timeout, in this order:
 
-- ``learner``: ``bench_learner.py`` on the CPU and the GPU, float32 and bfloat16, the 3DBall
-  MLP and 84x84x3 cameras (``simple``, ``nature_cnn``): PPO samples/s. Goals: nature_cnn
-  on the GPU >= 100,000; the MLP on the GPU >= the CPU's.
+- ``learner``: ``bench_learner.py`` on the CPU and the GPU (bfloat16 too), the 3DBall MLP
+  and 84x84x3 cameras (``simple``, ``nature_cnn``): PPO samples/s, and the share of one
+  update the GPU is busy (``--gpu-busy``). Goals: nature_cnn on the GPU >= 100,000; the MLP
+  on the GPU >= the CPU's; the GPU busy >= 50% of an AnimalArena update (its config, the
+  ``simple`` encoder: what the ``arena`` stage's learner runs).
 - ``scale``: ``bench_scale.py --delay-ms 0`` at ``--workers`` workers, counting and PPO
   learners (PPO on the GPU, waiting for each update as mlagents-learn does, and collecting
   through it: ``ppo+ahead``). Goal: PPO >= 0.8 of the counting learner's rate.
 - ``arena``: ``unity-rollout train`` on AnimalArena, ``--workers`` workers, the learner on
-  the GPU, ``nvidia-smi`` sampled every second. Goals: mean reward 0.9 within 25 s of
-  launch; the GPU's SM busy >= 50% while the learner updates (the samples above 0).
+  the GPU, ``nvidia-smi`` sampled every second (kept as a record: an update lasts tens of
+  ms, too short for its samples). Goal: mean reward 0.9 within 25 s of launch.
 - ``central``: ``bench_central.py``: how many workers at 600 agent-steps/s one learner
   feeds. Goal: >= 256 (154k samples/s for 3DBall PPO).
 
@@ -110,7 +112,7 @@ def arena(args: argparse.Namespace, timeout: float, out: Path) -> dict[str, Any]
         **result,
         "seconds_to_0.9": None if reached is None else round(reached, 1),
         "final_reward": rewards[-1][2] if rewards else None,
-        "gpu_sm_busy_mean_while_updating": sum(busy) / len(busy) if busy else None,
+        "gpu_sm_mean_of_nonzero_samples": sum(busy) / len(busy) if busy else None,
         "gpu_sm_samples": gpu.samples,
     }
 
@@ -136,6 +138,9 @@ def goals(stages: dict[str, Any], device: str) -> dict[str, Any]:
     fed = stages["central"].get("data", {}).get("workers_fed", {})
     learner_fed = [v for k, v in fed.items() if k.startswith("learner ppo")]
     arena = stages["arena"]
+    # the arena's learner: config/AnimalArena.yaml's simple encoder, float32, as in ``arena``
+    busy = stages["learner"].get("data", {}).get("gpu_busy", {})
+    arena_busy = busy.get(f"84x84x3 CNN | simple | {device}")
     return {
         "nature_cnn PPO samples/s": check(max(cnn) if cnn else None, 100_000),
         "3DBall MLP, GPU / CPU": check(mlp_gpu / mlp_cpu if mlp_gpu and mlp_cpu else None, 1.0),
@@ -143,8 +148,8 @@ def goals(stages: dict[str, Any], device: str) -> dict[str, Any]:
             ppo / counting if ppo and counting else None, 0.8
         ),
         "AnimalArena seconds to 0.9": check(arena.get("seconds_to_0.9"), 25, at_most=True),
-        "AnimalArena GPU SM busy while updating, %": check(
-            arena.get("gpu_sm_busy_mean_while_updating"), 50
+        "AnimalArena GPU busy while updating, %": check(
+            None if arena_busy is None else 100 * arena_busy, 50
         ),
         "workers at 600 steps/s one PPO learner feeds": check(
             min(learner_fed) if learner_fed else None, 256
@@ -177,10 +182,10 @@ def main() -> None:
     stages["learner"] = run_stage(
         "learner",
         [python, str(HERE / "bench_learner.py"), "--rounds", "1", "--updates", "2",
-         "--devices", *devices, "--encoders", *encoders,
+         "--devices", *devices, "--encoders", *encoders, "--gpu-busy",
          *([] if args.quick else ["--mixed-precision", args.device]),
          "--json", str(out.with_suffix(".learner.json"))],
-        left(90 if args.quick else 140), out,
+        left(90 if args.quick else 120), out,
     )  # fmt: skip
     stages["scale"] = run_stage(
         "scale",
@@ -188,16 +193,16 @@ def main() -> None:
          str(args.workers), "--learners", "counting", "ppo", "ppo+ahead", "--rounds", "1",
          "--seconds", "5" if args.quick else "10", "--warmup", "3", "--cpus", str(args.cpus),
          "--device", args.device, "--json", str(out.with_suffix(".scale.json"))],
-        left(90 if args.quick else 150), out,
+        left(90 if args.quick else 120), out,
     )  # fmt: skip
     stages["arena"] = arena(args, left(args.arena_seconds + 40), out)
     stages["central"] = run_stage(
         "central",
-        [python, str(HERE / "bench_central.py"), "--seconds", "4" if args.quick else "8",
+        [python, str(HERE / "bench_central.py"), "--seconds", "4" if args.quick else "5",
          "--workers", "2" if args.quick else "8", "--build-rate", "50", "--agents", "12",
          "--cpus", str(args.cpus), "--device", args.device,
          "--json", str(out.with_suffix(".central.json"))],
-        left(120 if args.quick else 90), out,
+        left(120 if args.quick else 170), out,
     )  # fmt: skip
     stages["goals"] = goals(stages, args.device)
     out.write_text(json.dumps(stages, indent=2))
