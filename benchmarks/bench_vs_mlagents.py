@@ -60,7 +60,7 @@ class Case:
     name: str
     env: str  # unitysim environment, built as a player for both trainers
     mlagents_config: str  # in benchmarks/mlagents_configs/
-    shipped_config: str  # in config/
+    shipped_config: str | None  # in config/; None: no shipped config for this example
     targets: tuple[float, ...]  # reward levels, ascending; the last one is the goal
     cap_s: float  # a run not there by then is stopped and reported as not reaching it
 
@@ -72,6 +72,8 @@ CASES = (
     Case(
         "GridWorld-PPO", "GridWorld", "ppo_GridWorld.yaml", "GridWorld.yaml", (0.0, 0.3, 0.8), 600
     ),
+    # environment parameters: the ball's mass and scale resampled (ML-Agents' samplers)
+    Case("3DBall_randomize-PPO", "3DBall", "ppo_3DBall_randomize.yaml", None, (50.0, 90.0), 900),
 )
 
 
@@ -333,11 +335,12 @@ def main() -> int:
             rounds = []
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 runs = [anchor_run(case, seed, build, anchor, work, 31000 + 10 * seed)]
+                shipped = case.shipped_config
                 for variant, config in (
                     (OURS_MLAGENTS, CONFIGS / case.mlagents_config),
-                    (OURS_SHIPPED, ROOT / "config" / case.shipped_config),
+                    (OURS_SHIPPED, ROOT / "config" / shipped if shipped else None),
                 ):
-                    if variant not in args.skip:
+                    if variant not in args.skip and config is not None:
                         runs.append(our_run(case, seed, build, config, variant, work))
                 print_round(case, runs)
                 rounds.append(runs)
