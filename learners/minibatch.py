@@ -53,10 +53,10 @@ def adam(params: Any, lr: float, compute: Compute) -> torch.optim.Adam:
 def set_learning_rate(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Write a new learning rate, in place where it is a tensor (a graph reads it there)."""
     for group in optimizer.param_groups:
-        set_learning_rate_of(group, lr)
+        _set_group_learning_rate(group, lr)
 
 
-def set_learning_rate_of(group: dict[str, Any], lr: float) -> None:
+def _set_group_learning_rate(group: dict[str, Any], lr: float) -> None:
     if isinstance(group["lr"], torch.Tensor):
         group["lr"].fill_(lr)
     else:
@@ -80,7 +80,7 @@ def load_optimizer(optimizer: torch.optim.Optimizer, state: dict[str, Any]) -> N
     for group, kept in zip(optimizer.param_groups, own, strict=True):
         saved = float(group["lr"])
         group.update(kept)
-        set_learning_rate_of(group, saved)
+        _set_group_learning_rate(group, saved)
 
 
 class MinibatchStep:
@@ -88,7 +88,7 @@ class MinibatchStep:
 
     ``loss(index, scalars)`` computes the loss entries of the minibatch at ``index`` with
     ``scalars`` (epsilon, beta) as tensors; it must read only tensors that outlive the
-    graph (``rebind`` drops the graph when they move)."""
+    graph (``start`` drops the graph when their addresses moved)."""
 
     def __init__(
         self,

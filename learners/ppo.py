@@ -118,7 +118,7 @@ class PPO:
         self.optimizer = adam(network.parameters(), h.learning_rate, self.compute)
         self.store = TrajectoryStore(h.buffer_size, self.compute.torch_device)
         self.step = MinibatchStep(self._minibatch_loss, self.optimizer, h.batch_size, self.compute)
-        self.steps: Steps | None = None  # the store's columns whole: what ``step`` reads
+        self._bound: Steps | None = None  # the store's columns whole: what ``step`` reads
         self._targets: torch.Tensor | None = None  # [2, capacity]: advantage, value target
         self.stale_steps = 0
 
@@ -174,14 +174,14 @@ class PPO:
         }
 
     def _bind(self, advantage: torch.Tensor, value_target: torch.Tensor) -> tuple[int, ...]:
-        """Point ``self.steps`` at the store's whole columns, with this update's advantages
+        """Point ``self._bound`` at the store's whole columns, with this update's advantages
         and targets copied into buffers beside them; returns the addresses a graph reads."""
         whole = self.store.whole()
         if self._targets is None or self._targets.shape[1] != len(whole):
             self._targets = torch.zeros(2, len(whole), device=self.compute.torch_device)
         self._targets[0, : len(advantage)] = advantage
         self._targets[1, : len(value_target)] = value_target
-        self.steps = Steps.of(whole, self._targets[0], self._targets[1])
+        self._bound = Steps.of(whole, self._targets[0], self._targets[1])
         fields = (*whole.obs.values(), whole.continuous, whole.discrete, whole.mask)
         tensors = [t for t in (*fields, whole.log_prob, self._targets) if t is not None]
         return tuple(t.data_ptr() for t in tensors)
@@ -189,8 +189,8 @@ class PPO:
     def _minibatch_loss(
         self, index: torch.Tensor, scalars: torch.Tensor
     ) -> dict[str, torch.Tensor]:
-        assert self.steps is not None
-        return self.loss(self.steps[index], scalars[0], scalars[1])
+        assert self._bound is not None
+        return self.loss(self._bound[index], scalars[0], scalars[1])
 
     def estimate(self, rows: Rows) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(value, advantage, value target) per row: GAE along each packed trajectory
