@@ -18,6 +18,12 @@ LOG_PROB = "sample_log_prob"
 POLICY_VERSION = "policy_version"  # int64: version of the weights that chose the action
 AGENT_ID = "agent_id"  # int64: Unity's agent id (unique within a behavior)
 GROUP_ID = "group_id"  # int64: multi-agent group, 0 = none
+# (GROUPMATES, ...): the other members of the agent's group at this step, [M, ...] per step
+# (M: the most a segment has; absent places are zeros with PRESENT False): OBS (what each
+# acted on), ACTION, REWARD and DONE (of its latest report), PRESENT; and
+# (NEXT, GROUPMATES, OBS): their newest observations, for the bootstrap (POCA)
+GROUPMATES = "groupmates"
+PRESENT = "present"
 
 NEXT = "next"
 REWARD = "reward"  # ("next", REWARD) float32 [1]: reward since the decision

@@ -59,16 +59,27 @@ class Segment:
 
     @staticmethod
     def concat(parts: Sequence[Segment]) -> Segment:
-        """Segments of one behavior, one after the other."""
+        """Segments of one behavior, one after the other; groupmate places (``[N, M,
+        ...]``, M grows during a run) are padded with empty ones to the widest."""
         if len(parts) == 1:
             return parts[0]
 
         def join(*arrays: np.ndarray) -> np.ndarray:
-            return np.concatenate(arrays)
+            widest = tuple(max(sizes) for sizes in zip(*(a.shape[1:] for a in arrays), strict=True))
+            return np.concatenate([_padded(a, widest) for a in arrays])
 
         first = parts[0]
         data = _walk(join, *(p.data for p in parts))
         return Segment(first.behavior, first.spec, data, first.source)
+
+
+def _padded(array: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """``array [N, ...]`` zero-padded at the end of each later dimension to ``shape``."""
+    if array.shape[1:] == shape:
+        return array
+    return np.pad(
+        array, [(0, 0)] + [(0, w - s) for s, w in zip(array.shape[1:], shape, strict=True)]
+    )
 
 
 def _walk(fn: Callable[..., Any], *trees: Mapping[str, Any]) -> dict[str, Any]:

@@ -12,6 +12,7 @@ from batches.contracts import base_name
 from driver.declaration import TrainingError
 from learners.config import DEFAULTS
 from learners.settings import RunConfig
+from learners.trainers import trainer
 
 log = logging.getLogger(__name__)
 
@@ -51,12 +52,15 @@ class BehaviorNotes:
     def report(self, specs: Mapping[str, dict[str, Any]], grouped: set[str] = frozenset()) -> None:
         for behavior in sorted(grouped - self.grouped):
             self.grouped.add(behavior)
+            settings = self.config.for_behavior(behavior)
+            if trainer(settings).trains_group_rewards:
+                continue
             log.warning(
                 "%s receives group rewards, which trainer_type %s does not train on (ML-Agents "
-                "trains them with POCA, trainer_type: poca, not supported yet): its agents "
-                "learn from their own rewards only",
+                "trains them with POCA: set trainer_type: poca): its agents learn from their "
+                "own rewards only",
                 behavior,
-                self.config.for_behavior(behavior).trainer_type,
+                settings.trainer_type,
             )
         for behavior, spec in specs.items():
             if behavior in self.seen:

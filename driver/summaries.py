@@ -89,6 +89,8 @@ class _Window:
     episodes: int = 0
     return_sum: float = 0.0
     length_sum: int = 0
+    group_episodes: int = 0
+    group_return_sum: float = 0.0
     losses: dict[str, list[float]] = field(default_factory=dict)
     unity_stats: dict[str, Stat] = field(default_factory=dict)  # since the last summary
     last_reward: float | None = None
@@ -205,6 +207,7 @@ class Summaries:
             line = (
                 f"Mean Reward: {window.last_reward:.3f}. Episode Length: {window.last_length:.1f}."
             )
+            line += self._group_reward(writer, behavior, step, window, metrics)
         if self.live is None:
             elapsed = time.perf_counter() - self.started
             self.console.print(
@@ -232,6 +235,21 @@ class Summaries:
         for name, rate in self.rates.items():
             writer.add_scalar(_RATE_TAGS[name], rate, step)
         writer.flush()
+
+    @staticmethod
+    def _group_reward(
+        writer: ScalarWriter, behavior: str, step: int, window: _Window, metrics: ServiceMetrics
+    ) -> str:
+        """ML-Agents' mean group reward of the episodes that ended with their group since
+        the last summary ("" for a behavior without groups)."""
+        episodes, rewards = metrics.group_totals().get(behavior, (0, 0.0))
+        new, gained = episodes - window.group_episodes, rewards - window.group_return_sum
+        window.group_episodes, window.group_return_sum = episodes, rewards
+        if new <= 0:
+            return ""
+        mean = gained / new
+        writer.add_scalar("Environment/Group Cumulative Reward", mean, step)
+        return f" Mean Group Reward: {mean:.3f}."
 
     def _table(self, metrics: ServiceMetrics, progress: dict[str, Any]) -> Table:
         elapsed = time.perf_counter() - self.started

@@ -41,9 +41,9 @@ from learners.factory import policy_factory
 from learners.remote import learner_actor
 from learners.settings import RunConfig
 from learners.trainers import trainer
+from rollout.horizons import Horizons
 from rollout.membership import request_workers, workers_wanted
 from rollout.ports import PortRange
-from rollout.segments import Horizons
 from rollout.service import (
     LearnerDied,
     RolloutError,

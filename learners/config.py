@@ -71,9 +71,6 @@ def _all_hyper_keys() -> set[str]:
 
 
 def _trainer_type_problem(value: object) -> str:
-    if value == "poca":
-        *others, last = TRAINERS
-        return f"'poca' is not supported; use {', '.join(others)} or {last}"
     return f"expected one of {', '.join(TRAINERS)}, got {show(value)}"
 
 

@@ -96,13 +96,15 @@ class MinibatchStep:
         optimizer: torch.optim.Optimizer,
         batch_size: int,
         compute: Compute,
+        reported: tuple[str, ...] = REPORTED,
     ) -> None:
         self.loss, self.optimizer, self.compute = loss, optimizer, compute
+        self.reported = reported
         device = compute.torch_device
         self.params = [p for group in optimizer.param_groups for p in group["params"]]
         self.index = torch.zeros(batch_size, dtype=torch.int64, device=device)
         self.scalars = torch.zeros(2, device=device)  # epsilon, beta
-        self.sums = torch.zeros(len(REPORTED), device=device)
+        self.sums = torch.zeros(len(reported), device=device)
         self.steps = 0  # in the current update
         self.graphable = device.type == "cuda"
         self._graph: torch.cuda.CUDAGraph | None = None
@@ -139,7 +141,7 @@ class MinibatchStep:
     def means(self) -> dict[str, float]:
         """Each reported entry's mean over this update's steps (one read of the device)."""
         values = (self.sums / max(self.steps, 1)).tolist()
-        return dict(zip(REPORTED, values, strict=True))
+        return dict(zip(self.reported, values, strict=True))
 
     # --- internals ----------------------------------------------------------------------
 
@@ -150,7 +152,7 @@ class MinibatchStep:
         sum(v for k, v in losses.items() if k.startswith("loss_")).backward()
         self.optimizer.step()
         with torch.no_grad():
-            self.sums += torch.stack([losses[k].detach().float() for k in REPORTED])
+            self.sums += torch.stack([losses[k].detach().float() for k in self.reported])
 
     def _run_eager(self) -> None:
         if not self.graphable:

@@ -42,6 +42,7 @@ from torchrl.objectives.value.functional import vec_generalized_advantage_estima
 from learners.counters import on_policy_wanted
 from learners.devices import Compute
 from learners.minibatch import (
+    REPORTED,
     MinibatchStep,
     adam,
     load_optimizer,
@@ -59,6 +60,29 @@ VALUE_CHUNK_BYTES = 256 * 2**20
 
 
 # ---- pieces IMPALA shares -------------------------------------------------------------------
+
+
+def policy_terms(
+    log_prob: torch.Tensor,
+    entropy: torch.Tensor,
+    steps: Steps,
+    epsilon: float | torch.Tensor,
+    beta: float | torch.Tensor,
+) -> dict[str, torch.Tensor]:
+    """ML-Agents' clipped surrogate (each action component's ratio clipped on its own,
+    the clipped surrogates averaged) and entropy bonus, with their diagnostics."""
+    log_ratio = log_prob - steps.log_prob
+    ratio = log_ratio.exp()  # [B, components]
+    advantage = steps.advantage.unsqueeze(-1)
+    surrogate = torch.min(ratio * advantage, ratio.clamp(1 - epsilon, 1 + epsilon) * advantage)
+    entropy = entropy.mean()
+    return {
+        "loss_objective": -surrogate.mean(),
+        "loss_entropy": -beta * entropy,
+        "entropy": entropy.detach(),
+        "clip_fraction": ((ratio.detach() - 1.0).abs() > epsilon).float().mean(),
+        "kl_approx": -log_ratio.detach().mean(),
+    }
 
 
 def actor_critic_report(mean: dict[str, float], lr: float, beta: float) -> dict[str, float]:
@@ -109,18 +133,26 @@ class Steps:
 
 
 class PPO:
+    groupmates = False  # the store keeps each step's groupmates (POCA)
+    reported = REPORTED  # the loss entries an update reports
+
     def __init__(
         self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
     ) -> None:
         self.network, self.settings = network, settings
         self.compute = compute or Compute()
         h = settings.hyperparameters
-        self.optimizer = adam(network.parameters(), h.learning_rate, self.compute)
-        self.store = TrajectoryStore(h.buffer_size, self.compute.torch_device)
-        self.step = MinibatchStep(self._minibatch_loss, self.optimizer, h.batch_size, self.compute)
+        self.optimizer = adam(self.trained_parameters(), h.learning_rate, self.compute)
+        self.store = TrajectoryStore(h.buffer_size, self.compute.torch_device, self.groupmates)
+        self.step = MinibatchStep(
+            self._minibatch_loss, self.optimizer, h.batch_size, self.compute, self.reported
+        )
         self._bound: Steps | None = None  # the store's columns whole: what ``step`` reads
         self._targets: torch.Tensor | None = None  # [2, capacity]: advantage, value target
         self.stale_steps = 0
+
+    def trained_parameters(self) -> list[torch.nn.Parameter]:
+        return list(self.network.parameters())
 
     # --- data in ------------------------------------------------------------------------
 
@@ -142,7 +174,6 @@ class PPO:
 
     def update(self, progress: float) -> dict[str, float]:
         """One PPO iteration on everything stored; ``progress`` in [0, 1] drives schedules."""
-        h = self.settings.hyperparameters
         rows = self.store.take()
         train = rows.train.nonzero().squeeze(-1)  # the steps that count in the loss
         self.network.update_normalization(rows.obs, None if len(train) == len(rows) else train)
@@ -151,17 +182,9 @@ class PPO:
         trained = advantage[train]
         advantage = (advantage - trained.mean()) / (trained.std() + 1e-10)
 
-        schedule = h.learning_rate_schedule
-        lr = decay(h.learning_rate, progress, schedule)
-        epsilon = decay(h.epsilon, progress, h.epsilon_schedule or schedule, EPSILON_END)
-        beta = decay(h.beta, progress, h.beta_schedule or schedule, BETA_END)
-        set_learning_rate(self.optimizer, lr)
+        lr, epsilon, beta = self.schedules(progress)
         self.step.start(self._bind(advantage, value_target), epsilon, beta)
-        for _ in range(h.num_epoch):
-            order = train[torch.randperm(len(train), device=train.device)]
-            for index in order.split(h.batch_size):
-                if len(index) == h.batch_size:
-                    self.step(index)
+        self.epochs(train)
         mean = self.step.means()
         return {
             **actor_critic_report(mean, lr, beta),
@@ -172,6 +195,26 @@ class PPO:
             "Policy/Stale Steps Dropped": float(self.stale_steps),
             "Policy/Samples": float(len(train)),
         }
+
+    def schedules(self, progress: float) -> tuple[float, float, float]:
+        """This update's learning rate (set in the optimizer), epsilon and beta."""
+        h = self.settings.hyperparameters
+        schedule = h.learning_rate_schedule
+        lr = decay(h.learning_rate, progress, schedule)
+        epsilon = decay(h.epsilon, progress, h.epsilon_schedule or schedule, EPSILON_END)
+        beta = decay(h.beta, progress, h.beta_schedule or schedule, BETA_END)
+        set_learning_rate(self.optimizer, lr)
+        return lr, epsilon, beta
+
+    def epochs(self, train: torch.Tensor) -> None:
+        """``num_epoch`` passes of shuffled minibatches of the ``train`` rows (the
+        remainder left out, as ML-Agents does)."""
+        h = self.settings.hyperparameters
+        for _ in range(h.num_epoch):
+            order = train[torch.randperm(len(train), device=train.device)]
+            for index in order.split(h.batch_size):
+                if len(index) == h.batch_size:
+                    self.step(index)
 
     def _bind(self, advantage: torch.Tensor, value_target: torch.Tensor) -> tuple[int, ...]:
         """Point ``self._bound`` at the store's whole columns, with this update's advantages
@@ -235,20 +278,13 @@ class PPO:
         log_prob, entropy, value = self.network.evaluate(
             steps.obs, steps.continuous, steps.discrete, steps.mask
         )
-        log_ratio = log_prob - steps.log_prob
-        ratio = log_ratio.exp()  # [B, components]
-        advantage = steps.advantage.unsqueeze(-1)
-        surrogate = torch.min(ratio * advantage, ratio.clamp(1 - epsilon, 1 + epsilon) * advantage)
+        terms = policy_terms(log_prob, entropy, steps, epsilon, beta)
         value_loss = (steps.value_target - value).square()
-        entropy = entropy.mean()
+        # summed for the gradient in this order: objective, critic, entropy
         return {
-            "loss_objective": -surrogate.mean(),
+            "loss_objective": terms.pop("loss_objective"),
             "loss_critic": 0.5 * value_loss.mean(),
-            "loss_entropy": -beta * entropy,
-            "entropy": entropy.detach(),
-            "clip_fraction": ((ratio.detach() - 1.0).abs() > epsilon).float().mean(),
-            "kl_approx": -log_ratio.detach().mean(),
-        }
+        } | terms
 
     # --- checkpoints --------------------------------------------------------------------
 

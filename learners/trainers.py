@@ -39,6 +39,8 @@ class TrainerType:
     asynchronous: bool = False
     # ML-Agents' SAC policy: tanh-squashed actions, log-std from a head on the trunk
     squashed: bool = False
+    # learns from group rewards (the others leave them out, and the driver says so)
+    trains_group_rewards: bool = False
 
     def settings(self) -> TrainerSettings:
         """ML-Agents' defaults for this trainer type."""
@@ -81,6 +83,13 @@ TRAINERS: Mapping[str, TrainerType] = {
             {"save_replay_buffer": False},
             Hyperparameters(batch_size=128, buffer_size=50_000, learning_rate_schedule="constant"),
             squashed=True,
+        ),
+        TrainerType(  # PPO with a centralized critic over each group (learners/poca.py)
+            "poca",
+            "learners.poca:POCA",
+            {**SHARED, **ON_POLICY, "max_policy_lag": int_from(0)},
+            waits_for_fresh_data=True,
+            trains_group_rewards=True,
         ),
         TrainerType(  # not in ML-Agents: PPO's defaults, one epoch
             "impala",

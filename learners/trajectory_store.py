@@ -8,14 +8,20 @@ the buffer is *over* ``buffer_size``, and the segment that tips it over is store
 
 Observations are kept once. Within a trajectory the next observation of a step is the
 observation of the step after it, so ``("next", "obs")`` is kept only where a trajectory
-ends truncated (a horizon cut, MaxStep): there the estimator bootstraps from it. A
-terminated end bootstraps with 0 and needs none. ML-Agents' buffer keeps one copy too.
+ends without ``terminated`` (a horizon cut, MaxStep): there the estimator bootstraps from
+it. A terminated end bootstraps with 0 and needs none. ML-Agents' buffer keeps one copy too.
+
+With ``groupmates`` (POCA) the store also keeps each step's groupmates (``rollout.groups``)
+and group reward, and an agent's end counts as terminated only when every groupmate's
+episode ended too, as ML-Agents' POCA decides: an agent that leaves its group mid-episode
+bootstraps from the group's next observations, which are kept at such ends. Groupmate
+places (``M``) are padded to the most any segment brought.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import torch
@@ -47,8 +53,12 @@ class Rows:
     done: torch.Tensor  # [n] bool
     terminated: torch.Tensor  # [n] bool
     train: torch.Tensor  # [n] bool: counts in the loss (else context for the estimator)
-    end_rows: torch.Tensor  # [e] int64: the truncated ends, in row order
+    end_rows: torch.Tensor  # [e] int64: the ends that bootstrap, in row order
     end_obs: dict[str, torch.Tensor]  # [e, ...]: their next observations
+    # groupmates only: "obs/<sensor>" [n, M, ...], "continuous", "discrete", "present",
+    # "reward" [n, M]; "group_reward" [n]; at the ends "obs/<sensor>" and "present"
+    groupmates: dict[str, torch.Tensor] = field(default_factory=dict)
+    end_groupmates: dict[str, torch.Tensor] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.log_prob)
@@ -57,9 +67,13 @@ class Rows:
 class TrajectoryStore:
     """Preallocated columns; ``add`` appends a segment, ``take`` hands all rows over."""
 
-    def __init__(self, buffer_size: int, device: torch.device | str = "cpu") -> None:
+    def __init__(
+        self, buffer_size: int, device: torch.device | str = "cpu", groupmates: bool = False
+    ) -> None:
         self.buffer_size = buffer_size
         self.device = torch.device(device)
+        self.groupmates = groupmates
+        self.places = 0  # groupmate places kept per step
         self.columns: dict[str, torch.Tensor] = {}
         self.ends: dict[str, torch.Tensor] = {}
         self.rows = 0  # rows stored
@@ -72,9 +86,13 @@ class TrajectoryStore:
         if keep is None:
             keep = torch.ones(count, dtype=torch.bool)
         fields = self._fields(segment, keep)
-        truncated = segment[keys.NEXT, keys.TRUNCATED].reshape(-1)
-        ends = truncated.nonzero().squeeze(-1)
-        next_obs = {name: value[ends] for name, value in segment[keys.NEXT, keys.OBS].items()}
+        ends = (fields["done"] & ~fields["terminated"]).nonzero().squeeze(-1)
+        next_obs = {"obs/" + n: v[ends] for n, v in segment[keys.NEXT, keys.OBS].items()}
+        if self.groupmates:
+            after = segment[keys.NEXT, keys.GROUPMATES, keys.OBS]
+            next_obs |= {"mate_obs/" + n: v[ends] for n, v in after.items()}
+            next_obs["mate_present"] = fields["mate_present"][ends]
+            next_obs = self._fit_places(fields, next_obs)
         if not self.columns:
             self._allocate(fields, next_obs, self.buffer_size + min(4 * count, self.buffer_size))
         self._fit(self.rows + count, self.end_count + len(ends))
@@ -83,7 +101,7 @@ class TrajectoryStore:
         end_rows = ends.to(self.device) + self.rows
         self.ends["row"][self.end_count : self.end_count + len(ends)] = end_rows
         for name, value in next_obs.items():
-            column = self.ends["obs/" + name]
+            column = self.ends[name]
             column[self.end_count : self.end_count + len(ends)].copy_(value, non_blocking=True)
         self.rows += count
         self.end_count += len(ends)
@@ -108,6 +126,10 @@ class TrajectoryStore:
 
         obs = {k[4:]: v[:n] for k, v in self.columns.items() if k.startswith("obs/")}
         end_obs = {k[4:]: v[:e] for k, v in self.ends.items() if k.startswith("obs/")}
+        mates = {k[5:]: v[:n] for k, v in self.columns.items() if k.startswith("mate_")}
+        if "group_reward" in self.columns:
+            mates["group_reward"] = self.columns["group_reward"][:n]
+        end_mates = {k[5:]: v[:e] for k, v in self.ends.items() if k.startswith("mate_")}
         return Rows(
             obs=obs,
             continuous=column("continuous"),
@@ -120,6 +142,8 @@ class TrajectoryStore:
             train=self.columns["train"][:n],
             end_rows=self.ends["row"][:e],
             end_obs=end_obs,
+            groupmates=mates,
+            end_groupmates=end_mates,
         )
 
     def nbytes(self) -> int:
@@ -127,8 +151,7 @@ class TrajectoryStore:
 
     # --- internals ----------------------------------------------------------------------
 
-    @staticmethod
-    def _fields(segment: TensorDictBase, keep: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _fields(self, segment: TensorDictBase, keep: torch.Tensor) -> dict[str, torch.Tensor]:
         fields = {"obs/" + name: value for name, value in segment[keys.OBS].items()}
         action = segment[keys.ACTION]
         optional = {
@@ -142,7 +165,34 @@ class TrajectoryStore:
         fields["done"] = segment[keys.NEXT, keys.DONE].reshape(-1)
         fields["terminated"] = segment[keys.NEXT, keys.TERMINATED].reshape(-1)
         fields["train"] = keep.to(torch.bool)
+        if self.groupmates:
+            mates = segment[keys.GROUPMATES]
+            fields |= {"mate_obs/" + n: v for n, v in mates[keys.OBS].items()}
+            mate_action = mates[keys.ACTION]
+            for name in (keys.CONTINUOUS, keys.DISCRETE):
+                if (value := mate_action.get(name, None)) is not None:
+                    fields["mate_" + name] = value
+            fields["mate_present"] = mates[keys.PRESENT]
+            fields["mate_reward"] = mates[keys.REWARD]
+            fields["group_reward"] = segment[keys.NEXT, keys.GROUP_REWARD].reshape(-1)
+            # the group goes on while any groupmate's episode does: bootstrap from it
+            going_on = (mates[keys.PRESENT] & ~mates[keys.DONE]).any(-1)
+            fields["terminated"] = fields["terminated"] & ~going_on
         return fields
+
+    def _fit_places(
+        self, fields: dict[str, torch.Tensor], ends: dict[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
+        """Pad this segment's groupmate places to the store's, or widen the store's."""
+        places = fields["mate_present"].shape[1]
+        if places > self.places and self.columns:
+            self.columns = {k: _widened(k, v, places) for k, v in self.columns.items()}
+            self.ends = {k: _widened(k, v, places) for k, v in self.ends.items()}
+        self.places = max(self.places, places)
+        for tree in (fields, ends):
+            for name, value in tree.items():
+                tree[name] = _widened(name, value, self.places)
+        return ends
 
     def _allocate(
         self, fields: dict[str, torch.Tensor], next_obs: dict[str, torch.Tensor], rows: int
@@ -162,7 +212,7 @@ class TrajectoryStore:
             self.columns[name] = self._empty(rows, value)
         self.ends["row"] = torch.empty(end_capacity, dtype=torch.int64, device=self.device)
         for name, value in next_obs.items():
-            self.ends["obs/" + name] = self._empty(end_capacity, value)
+            self.ends[name] = self._empty(end_capacity, value)
 
     def _empty(self, rows: int, like: torch.Tensor) -> torch.Tensor:
         return torch.empty((rows, *like.shape[1:]), dtype=like.dtype, device=self.device)
@@ -182,6 +232,14 @@ def _grown(tensor: torch.Tensor, rows: int, used: int) -> torch.Tensor:
     bigger = torch.empty((rows, *tensor.shape[1:]), dtype=tensor.dtype, device=tensor.device)
     bigger[:used] = tensor[:used]
     return bigger
+
+
+def _widened(name: str, tensor: torch.Tensor, places: int) -> torch.Tensor:
+    """A groupmate column (``mate_*``, ``[n, M, ...]``) zero-padded to ``places``."""
+    if not name.startswith("mate_") or tensor.shape[1] == places:
+        return tensor
+    pad = [0, 0] * (tensor.dim() - 2) + [0, places - tensor.shape[1]]
+    return torch.nn.functional.pad(tensor, pad)
 
 
 def _row_bytes(tensor: torch.Tensor) -> int:

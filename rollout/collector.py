@@ -27,9 +27,10 @@ from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 from batches.contracts import Actor, ActorFactory, Weights
 from batches.parameters import Values
 from batches.segment import Segment
+from rollout.horizons import Horizons
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
-from rollout.segments import Decisions, Horizons, SegmentBuilder, allowed_mask
+from rollout.segments import Decisions, SegmentBuilder, allowed_mask
 from rollout.unity import (
     RECOVERABLE,
     UnityConfig,
@@ -51,6 +52,8 @@ class BehaviorStats:
     rows: int = 0
     dropped_steps: int = 0
     group_rewards: int = 0  # transitions with a nonzero group reward
+    group_episodes: int = 0  # grouped agents' episodes that ended with their group
+    group_return_sum: float = 0.0  # their group rewards
 
 
 @dataclass
@@ -256,5 +259,8 @@ class Collector:
             stats.rows = builder.counters.rows
             stats.dropped_steps = builder.counters.dropped_steps
             stats.group_rewards = builder.counters.group_rewards
+            group_returns = builder.drain_group_episodes()
+            stats.group_episodes += len(group_returns)
+            stats.group_return_sum += float(group_returns.sum())
         stats = self.unity.drain_stats() if self.unity.env is not None else {}
         return dataclasses.replace(metrics, unity_stats=stats)  # each report: new ones only

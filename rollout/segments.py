@@ -19,41 +19,18 @@ per-slot buffers, never a Python loop over agents.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
 
 from batches import keys, specs
-from batches.contracts import base_name
 from batches.segment import Segment
+from rollout.groups import Groupmates
 
 INITIAL_SLOTS = 16
 STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
 GONE_AFTER = 64  # at least: exchanges an ended agent may stay away before its slot is freed
-
-
-@dataclass(frozen=True)
-class Horizons:
-    """Where each behavior's rows are cut: its own ``time_horizon``, as ML-Agents cuts each
-    behavior's trajectories; ``behaviors`` is keyed as trainer configs name them (without
-    ``?team=``), ``default`` serves the others."""
-
-    default: int = 64
-    behaviors: Mapping[str, int] = field(default_factory=dict)
-
-    @classmethod
-    def of(cls, horizon: int | Horizons) -> Horizons:
-        return horizon if isinstance(horizon, Horizons) else cls(horizon)
-
-    def __call__(self, behavior: str) -> int:
-        return self.behaviors.get(base_name(behavior), self.default)
-
-    @property
-    def shortest(self) -> int:
-        """The shortest configured row: the least a collect should ask for."""
-        return min(self.behaviors.values()) if self.behaviors else self.default
 
 
 @dataclass(frozen=True)
@@ -104,11 +81,16 @@ class SegmentBuilder:
         self.gone_after = gone_after or max(horizon, GONE_AFTER)
         self.counters = Counters()
         self.episodes: list[tuple[np.ndarray, np.ndarray]] = []  # (returns, lengths) batches
+        # group rewards of the episodes of grouped agents that ended with their group
+        # (ML-Agents' "Environment/Group Cumulative Reward"; a sacrificed agent's is not)
+        self.group_episodes: list[np.ndarray] = []
         self._sensors = [(o.name, o.shape) for o in spec.observation_specs]
         self._pixels = frozenset(pixel_sensors)
         self._continuous = spec.action_spec.continuous_size
         self._branches = len(spec.action_spec.discrete_branches)
         self._mask_size = int(sum(spec.action_spec.discrete_branches))
+        stored = [(n, s, np.uint8 if n in self._pixels else np.float32) for n, s in self._sensors]
+        self.groups = Groupmates(stored, self._continuous, self._branches, 0, horizon)
         self._allocate(INITIAL_SLOTS)
 
     # --- storage ------------------------------------------------------------------------
@@ -139,6 +121,7 @@ class SegmentBuilder:
             "ended": np.zeros(s, np.bool_),
             "idle": np.zeros(s, np.int64),
             "ep_return": np.zeros(s, np.float64),
+            "ep_group": np.zeros(s, np.float64),
             "ep_length": np.zeros(s, np.int64),
             "agent": np.full(s, -1, np.int64),  # agent id per slot, -1 = free
         }
@@ -155,6 +138,7 @@ class SegmentBuilder:
         if old is not None:
             for name, array in old.items():
                 self._f[name][: len(array)] = array
+        self.groups.resize(slots)
 
     def _slots(self, ids: np.ndarray, create: bool) -> np.ndarray:
         """Slot of each agent id (vectorized); -1 for unknown ids unless ``create``."""
@@ -176,10 +160,11 @@ class SegmentBuilder:
             chosen = free[: len(new)]
             f = self._f
             f["agent"][chosen] = ids[new]
-            for name in ("length", "idle", "ep_return", "ep_length"):
+            for name in ("length", "idle", "ep_return", "ep_length", "ep_group"):
                 f[name][chosen] = 0
             for name in ("pending", "ended"):
                 f[name][chosen] = False
+            self.groups.forget(chosen)
             slots[new] = chosen
         return slots
 
@@ -189,21 +174,22 @@ class SegmentBuilder:
         """Complete the pending transitions of agents that reported in this exchange."""
         f = self._f
         f["idle"][f["agent"] >= 0] += 1
+        slots_ended = np.zeros(0, np.int64)
         if len(terminals):
-            slots = self._slots(terminals.agent_id.astype(np.int64), create=False)
+            slots = slots_ended = self._slots(terminals.agent_id.astype(np.int64), create=False)
             known = slots >= 0
             f["ended"][slots[known]] = True
             f["idle"][slots[known]] = 0
             rows = np.flatnonzero(known & f["pending"][np.maximum(slots, 0)])
             self.counters.unmatched_terminals += len(terminals) - len(rows)
-            interrupted = terminals.interrupted[rows]
             self._complete(
                 slots[rows],
                 [o[rows] for o in terminals.obs],
                 terminals.reward[rows],
                 terminals.group_reward[rows],
+                np.asarray(terminals.group_id, np.int64)[rows],
                 done=np.ones(len(rows), np.bool_),
-                truncated=interrupted,
+                truncated=terminals.interrupted[rows],
             )
         if len(decisions):
             slots = self._slots(decisions.agent_id.astype(np.int64), create=True)
@@ -217,9 +203,12 @@ class SegmentBuilder:
                 [o[rows] for o in decisions.obs],
                 decisions.reward[rows],
                 decisions.group_reward[rows],
+                np.asarray(decisions.group_id, np.int64)[rows],
                 done=none,
                 truncated=none,
             )
+        if len(terminals):  # ended agents leave their groups' statuses after the exchange
+            self.groups.forget(slots_ended[slots_ended >= 0])
 
     def _complete(
         self,
@@ -227,26 +216,27 @@ class SegmentBuilder:
         next_obs: list[np.ndarray],
         reward: np.ndarray,
         group_reward: np.ndarray,
+        group: np.ndarray,
         done: np.ndarray,
         truncated: np.ndarray,
     ) -> None:
+        """Complete pending transitions; first, as ML-Agents, the reporting agents' group
+        statuses, then each transition's groupmates (``rollout.groups``)."""
         if not len(slots):
             return
         f = self._f
         t = f["length"][slots]
-        for name, _ in self._sensors:
-            f[f"obs/{name}"][slots, t] = f[f"p_obs/{name}"][slots]
-        for (name, _), values in zip(self._sensors, next_obs, strict=True):
-            f[f"next/{name}"][slots, t] = self._stored(name, values)
-        for row, pending in (
-            ("cont", "p_cont"),
-            ("disc", "p_disc"),
-            ("mask", "p_mask"),
-            ("logp", "p_logp"),
-            ("version", "p_version"),
-            ("group", "p_group"),
-        ):
-            f[row][slots, t] = f[pending][slots]
+        acted = [f[f"p_obs/{name}"][slots] for name, _ in self._sensors]
+        now = [self._stored(name, v) for (name, _), v in zip(self._sensors, next_obs, strict=True)]
+        self.groups.set_status(
+            slots, group, acted, f["p_cont"][slots], f["p_disc"][slots], now, reward, done
+        )
+        mates_play_on = self.groups.record(slots, t, group)
+        for (name, _), before, after in zip(self._sensors, acted, now, strict=True):
+            f[f"obs/{name}"][slots, t] = before
+            f[f"next/{name}"][slots, t] = after
+        for row in ("cont", "disc", "mask", "logp", "version", "group"):
+            f[row][slots, t] = f[f"p_{row}"][slots]
         f["reward"][slots, t] = reward
         f["group_reward"][slots, t] = group_reward
         self.counters.group_rewards += int(np.count_nonzero(group_reward))
@@ -258,10 +248,14 @@ class SegmentBuilder:
         self.counters.steps += len(slots)
         f["ep_return"][slots] += reward
         f["ep_length"][slots] += 1
+        f["ep_group"][slots] += group_reward
         ended = slots[done]
         if len(ended):
             self.episodes.append((f["ep_return"][ended].copy(), f["ep_length"][ended].copy()))
-            f["ep_return"][ended] = 0.0
+            with_group = slots[done & (group > 0) & ~mates_play_on]
+            if len(with_group):
+                self.group_episodes.append(f["ep_group"][with_group].copy())
+            f["ep_return"][ended] = f["ep_group"][ended] = 0.0
             f["ep_length"][ended] = 0
 
     def _stored(self, name: str, values: np.ndarray) -> np.ndarray:
@@ -303,6 +297,7 @@ class SegmentBuilder:
         length[rows] = 0
         gone = active & f["ended"] & (f["idle"] > self.gone_after)
         f["agent"][gone | silent] = -1
+        self.groups.forget(np.flatnonzero(gone | silent))
         return batch
 
     def _rows(self, slots: np.ndarray, env_steps: int) -> Segment:
@@ -351,6 +346,7 @@ class SegmentBuilder:
         }
         if self._mask_size:
             data[keys.ACTION_MASK] = take("mask")
+        data[keys.GROUPMATES], data[keys.NEXT][keys.GROUPMATES] = self.groups.take(row_of, time)
         self.counters.rows += len(slots)
         self.counters.emitted_steps += n
         return Segment(self.behavior, self._spec_dict, data)
@@ -367,6 +363,11 @@ class SegmentBuilder:
             return np.zeros(0), np.zeros(0, np.int64)
         return np.concatenate([r for r, _ in episodes]), np.concatenate([n for _, n in episodes])
 
+    def drain_group_episodes(self) -> np.ndarray:
+        """Group rewards of the grouped episodes finished since the last call."""
+        episodes, self.group_episodes = self.group_episodes, []
+        return np.concatenate(episodes) if episodes else np.zeros(0)
+
     def drop_partial(self, lesson_reset: bool = False) -> int:
         """Forget every unfinished row (the player died, or a lesson reset Unity): returns
         the steps dropped."""
@@ -381,6 +382,7 @@ class SegmentBuilder:
         f["agent"][:] = -1
         f["length"][:] = 0
         f["pending"][:] = False
+        self.groups.forget(np.arange(len(f["agent"])))
         self.counters.dropped_steps += dropped
         return dropped
 

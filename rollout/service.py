@@ -34,9 +34,9 @@ from ray.exceptions import ObjectLostError, RayActorError, RayError, RayTaskErro
 
 from batches.contracts import ActorFactory
 from batches.parameters import Assignment, Values
+from rollout.horizons import Horizons
 from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, steps_of
 from rollout.membership import Membership
-from rollout.segments import Horizons
 from rollout.service_config import LearnerDied, RolloutError, ServiceConfig, last_line
 from rollout.service_metrics import ServiceMetrics, WorkerReports, merge_stats
 from rollout.supervision import WorkerSupervision

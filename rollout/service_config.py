@@ -5,8 +5,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+from rollout.horizons import Horizons
 from rollout.ports import PortRange
-from rollout.segments import Horizons
 from rollout.unity import UnityConfig
 
 

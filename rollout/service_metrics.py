@@ -132,6 +132,20 @@ class ServiceMetrics:
                 )
         return totals
 
+    def group_totals(self) -> dict[str, tuple[int, float]]:
+        """Per behavior with groups, over live workers: (episodes that ended with their
+        group, their group rewards' sum) so far."""
+        totals: dict[str, tuple[int, float]] = {}
+        for worker in self.workers:
+            for name, stats in worker.behaviors.items():
+                if stats.group_episodes:
+                    episodes, rewards = totals.get(name, (0, 0.0))
+                    totals[name] = (
+                        episodes + stats.group_episodes,
+                        rewards + stats.group_return_sum,
+                    )
+        return totals
+
     def group_rewarded(self) -> set[str]:
         """The behaviors whose agents received a nonzero group reward, on any worker."""
         return {

@@ -17,9 +17,9 @@ import ray
 from batches.contracts import ActorFactory, Weights
 from batches.parameters import Assignment, Values, reseeded
 from rollout.collector import Collector, CollectorMetrics
+from rollout.horizons import Horizons
 from rollout.ledger import Collected
 from rollout.ports import PortAllocator, PortRange
-from rollout.segments import Horizons
 from rollout.unity import UnityConfig
 
 

@@ -16,9 +16,9 @@ from batches import keys
 from batches.contracts import ActorFactory, Weights
 from batches.segment import Segment
 from rollout.collector import Collector, CollectorMetrics
+from rollout.horizons import Horizons
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator, PortRange
-from rollout.segments import Horizons
 from rollout.unity import UnityConfig
 
 

@@ -95,7 +95,7 @@ def test_no_readable_checkpoint_of_a_behavior_is_a_one_line_error(tmp_path):
 def test_the_service_cuts_each_behaviors_rows_at_its_own_time_horizon():
     from driver.options import TrainOptions
     from driver.train import service_config
-    from rollout.segments import Horizons
+    from rollout.horizons import Horizons
     from rollout.unity import UnityConfig
 
     settings = service_config(TrainOptions(), parse_config(TWO), UnityConfig(None), False)
@@ -170,3 +170,14 @@ def test_group_rewards_a_trainer_does_not_use_are_a_warning_once(caplog):
     (said,) = [r.getMessage() for r in caplog.records]
     assert said.startswith("Striker?team=0 receives group rewards, which trainer_type ppo")
     assert "POCA" in said
+
+
+def test_group_rewards_under_poca_are_trained_on_and_not_a_warning(caplog):
+    from driver.behavior_notes import BehaviorNotes
+
+    config = parse_config({"behaviors": {"Striker": {"trainer_type": "poca"}}})
+    with caplog.at_level(logging.WARNING):
+        BehaviorNotes(config, no_graphics=False).report(
+            {NAMES["Striker"]: spec((8,))}, {NAMES["Striker"]}
+        )
+    assert caplog.records == []

@@ -271,7 +271,7 @@ def test_numbers_as_yaml_leaves_them() -> None:
         ),
         ("{hyperparameters: {lambd: -0.1}}", "behaviors.3DBall.hyperparameters.lambd:", "[0, 1]"),
         ("{hyperparameters: {epsilon: 0}}", "behaviors.3DBall.hyperparameters.epsilon:", ""),
-        ("{trainer_type: dqn}", "behaviors.3DBall.trainer_type:", "ppo, sac, impala"),
+        ("{trainer_type: dqn}", "behaviors.3DBall.trainer_type:", "ppo, sac, poca, impala"),
         ("{hyperparameters: {tau: 0.01}}", "behaviors.3DBall.hyperparameters.tau:", "not a ppo"),
         ("{hyperparameters: [1, 2]}", "behaviors.3DBall.hyperparameters:", "mapping"),
         ("{reward_signals: {extrinsc: {}}}", "behaviors.3DBall.reward_signals.extrinsc:", "'extr"),
@@ -303,14 +303,10 @@ def test_run_level_errors() -> None:
         parse_config(["behaviors"])
 
 
-def test_poca_is_an_error() -> None:
-    with pytest.raises(ConfigError) as caught:
-        parse_config(one_behavior("{trainer_type: poca}"))
-    assert str(caught.value) == (
-        "behaviors.3DBall.trainer_type: 'poca' is not supported; use ppo, sac or impala"
-    )
-    with pytest.raises(ConfigError, match=r"^default_settings.trainer_type: 'poca'"):
-        parse_config({"default_settings": {"trainer_type": "poca"}})
+def test_ml_agents_poca_configs_train_with_poca() -> None:
+    config = load_config(Path(__file__).parents[1] / "mlagents_configs/poca/DungeonEscape.yaml")
+    assert config.behaviors["DungeonEscape"].trainer_type == "poca"
+    assert config.unsupported == ()
 
 
 def test_unsupported_keys_are_reported(caplog: pytest.LogCaptureFixture) -> None:

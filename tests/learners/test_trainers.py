@@ -55,7 +55,7 @@ def test_a_new_trainer_is_one_entry(registered):
 
 
 def test_unknown_trainer_types_list_the_registry():
-    with pytest.raises(ConfigError, match="expected one of ppo, sac, impala, got 'dqn'"):
+    with pytest.raises(ConfigError, match="expected one of ppo, sac, poca, impala, got 'dqn'"):
         parse_config({"behaviors": {"B": {"trainer_type": "dqn"}}})
 
 

@@ -17,8 +17,8 @@ from batches.parameters import Constant
 from batches.specs import spec_from_dict, step_spec
 from learners.factory import actor_factory
 from rollout.collector import NO_AGENT_STEPS, Collector
+from rollout.horizons import Horizons
 from rollout.restarts import RestartPolicy
-from rollout.segments import Horizons
 from rollout.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import leak_checked_allocator, trajectories
 

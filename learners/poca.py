@@ -1,0 +1,241 @@
+"""POCA for one behavior's groups, as mlagents-learn 1.1.0 runs it (``trainer_type: poca``).
+
+MA-POCA (Cohen et al., 2021) is PPO with a centralized critic that attends over however
+many agents a group has (``learners/group_critic.py``). Read top to bottom, one update:
+
+- segments arrive with each step's groupmates (``rollout.groups``) and are stored with
+  them (``TrajectoryStore(groupmates=True)``) until more than ``buffer_size`` steps are
+  there, as PPO's;
+- the agents' own observations update the policy's and the critic's normalization;
+- the reward of a step is the agent's own, its group's, and its groupmates' of the same
+  exchange (ML-Agents' extrinsic signal under POCA, ``add_groupmate_rewards``), times
+  ``strength``;
+- V is the critic's value of the agent with its groupmates; the lambda-return runs along
+  each trajectory on V (torchrl's GAE target is the same number), bootstrapping at its end
+  from the group's next observations unless the agent's episode and every groupmate's
+  ended: an agent that leaves mid-episode (DungeonEscape's sacrifice) still gets the
+  value of what its group goes on to earn;
+- the advantage is the lambda-return minus the agent's counterfactual baseline (its
+  groupmates' actions given, its own left out), normalized over the buffer;
+- ``num_epoch`` passes of shuffled minibatches: PPO's clipped surrogate per action
+  component, and the value and the baseline regressed on the lambda-return, each clipped
+  to ``epsilon`` around its estimate before the update (ML-Agents' trust-region value
+  loss, whose clip binds here: POCA's buffer holds the estimates), weighed
+  ``policy + 0.5 (value + 0.5 baseline) - beta entropy``.
+
+Schedules, policy lag, the optimizer and checkpoints are PPO's (``learners/ppo.py``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
+
+from learners.devices import Compute
+from learners.group_critic import GroupCritic
+from learners.minibatch import REPORTED
+from learners.ppo import PPO, VALUE_CHUNK_BYTES, Steps, actor_critic_report, policy_terms
+from learners.trajectory_store import Rows
+
+if TYPE_CHECKING:
+    from learners.policies import ActorCritic
+    from learners.settings import TrainerSettings
+
+
+@dataclass(frozen=True)
+class GroupSteps:
+    """PPO's steps with their groupmates and the estimates the value losses clip around."""
+
+    steps: Steps  # value_target: the lambda-return
+    mates: dict[str, torch.Tensor]  # sensor -> [N, M, ...]
+    mate_continuous: torch.Tensor | None  # [N, M, c]
+    mate_discrete: torch.Tensor | None  # [N, M, branches]
+    present: torch.Tensor  # [N, M] bool
+    old_value: torch.Tensor  # [N]
+    old_baseline: torch.Tensor  # [N]
+
+    def __getitem__(self, index: torch.Tensor) -> GroupSteps:
+        def pick(tensor: torch.Tensor | None) -> torch.Tensor | None:
+            return None if tensor is None else tensor[index]
+
+        return GroupSteps(
+            self.steps[index],
+            {name: obs[index] for name, obs in self.mates.items()},
+            pick(self.mate_continuous),
+            pick(self.mate_discrete),
+            self.present[index],
+            self.old_value[index],
+            self.old_baseline[index],
+        )
+
+
+def trust_region_loss(
+    new: torch.Tensor, old: torch.Tensor, target: torch.Tensor, epsilon: float | torch.Tensor
+) -> torch.Tensor:
+    """ML-Agents' clipped value loss: the worse of the estimate's and of the estimate
+    clipped to ``epsilon`` around the old one."""
+    clipped = old + (new - old).clamp(-epsilon, epsilon)
+    return torch.max((target - new).square(), (target - clipped).square()).mean()
+
+
+class POCA(PPO):
+    groupmates = True
+    reported = (*REPORTED, "loss_baseline")
+
+    def __init__(
+        self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+    ) -> None:
+        compute = compute or Compute()
+        self.critic = GroupCritic(network.spec, network.settings)
+        compute.place(self.critic)
+        super().__init__(network, settings, compute)
+        self._group_bound: GroupSteps | None = None
+
+    def trained_parameters(self) -> list[torch.nn.Parameter]:
+        return [*self.network.parameters(), *self.critic.parameters()]
+
+    # --- the update ---------------------------------------------------------------------
+
+    def update(self, progress: float) -> dict[str, float]:
+        """One POCA iteration on everything stored; ``progress`` drives the schedules."""
+        rows = self.store.take()
+        train = rows.train.nonzero().squeeze(-1)
+        subset = None if len(train) == len(rows) else train
+        self.network.update_normalization(rows.obs, subset)
+        own = rows.obs if subset is None else {n: o[subset] for n, o in rows.obs.items()}
+        self.critic.update_normalization(own)
+        with torch.no_grad():
+            value, baseline, returns = self.estimate_group(rows)
+        advantage = returns - baseline
+        trained = advantage[train]
+        advantage = (advantage - trained.mean()) / (trained.std() + 1e-10)
+
+        lr, epsilon, beta = self.schedules(progress)
+        self.step.start(self._bind_group(advantage, returns, value, baseline), epsilon, beta)
+        self.epochs(train)
+        mean = self.step.means()
+        return {
+            **actor_critic_report(mean, lr, beta),
+            "Losses/Policy Loss": abs(mean["loss_objective"]),  # ML-Agents reports |loss|
+            "Losses/Baseline Loss": mean["loss_baseline"] * 4,  # undo 0.5 * 0.5
+            "Policy/Epsilon": epsilon,
+            "Policy/Clip Fraction": mean["clip_fraction"],
+            "Policy/Approx KL": mean["kl_approx"],
+            "Policy/Extrinsic Value Estimate": float(value[train].mean()),
+            "Policy/Extrinsic Baseline Estimate": float(baseline[train].mean()),
+            "Policy/Stale Steps Dropped": float(self.stale_steps),
+            "Policy/Samples": float(len(train)),
+        }
+
+    def estimate_group(self, rows: Rows) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(V, baseline, lambda-return) per row."""
+        g, e = rows.groupmates, rows.end_groupmates
+        mates = {k[4:]: v for k, v in g.items() if k.startswith("obs/")}
+        action = self.critic.flat_action(g.get("continuous"), g.get("discrete"))
+        present = g["present"]
+
+        def value(s: slice) -> torch.Tensor:
+            own = {n: o[s] for n, o in rows.obs.items()}
+            return self.critic.value(own, {n: m[s] for n, m in mates.items()}, present[s])
+
+        def baseline(s: slice) -> torch.Tensor:
+            own = {n: o[s] for n, o in rows.obs.items()}
+            others = {n: m[s] for n, m in mates.items()}
+            return self.critic.baseline(own, others, action[s], present[s])
+
+        width = 1 + present.shape[1]
+        values = self._chunked(value, rows, width)
+        baselines = self._chunked(baseline, rows, width)
+        next_value = torch.zeros_like(values)
+        next_value[:-1] = values[1:]
+        if len(rows.end_rows):
+            end_mates = {k[4:]: v for k, v in e.items() if k.startswith("obs/")}
+            end_value = self.critic.value(rows.end_obs, end_mates, e["present"])
+            next_value[rows.end_rows] = end_value
+        shared = g["group_reward"] + (g["reward"] * present).sum(-1)
+        reward = (rows.reward + shared) * self.settings.reward_strength
+        _, returns = vec_generalized_advantage_estimate(
+            self.settings.gamma,
+            self.settings.hyperparameters.lambd,
+            values.unsqueeze(-1),
+            next_value.unsqueeze(-1),
+            reward.unsqueeze(-1),
+            rows.done.unsqueeze(-1),
+            rows.terminated.unsqueeze(-1),
+            time_dim=-2,
+        )
+        return values, baselines, returns.squeeze(-1)
+
+    def _chunked(
+        self, fn: Callable[[slice], torch.Tensor], rows: Rows, entities: int
+    ) -> torch.Tensor:
+        """``fn`` over slices of the rows, about ``VALUE_CHUNK_BYTES`` of float input each."""
+        width = sum(math.prod(o.shape[1:]) for o in rows.obs.values()) * 4 * entities
+        chunk = max(1, VALUE_CHUNK_BYTES // max(width, 1))
+        parts = [fn(slice(i, i + chunk)) for i in range(0, len(rows), chunk)]
+        return torch.cat(parts) if parts else torch.zeros(0, device=self.compute.torch_device)
+
+    def _bind_group(self, *targets: torch.Tensor) -> tuple[int, ...]:
+        """As PPO's ``_bind``: the store's whole columns, with this update's advantage,
+        lambda-return, V and baseline in buffers beside them (a CUDA graph reads them)."""
+        whole = self.store.whole()
+        if self._targets is None or self._targets.shape[1] != len(whole):
+            self._targets = torch.zeros(4, len(whole), device=self.compute.torch_device)
+        for row, values in enumerate(targets):
+            self._targets[row, : len(values)] = values
+        g = whole.groupmates
+        self._group_bound = GroupSteps(
+            Steps.of(whole, self._targets[0], self._targets[1]),
+            {k[4:]: v for k, v in g.items() if k.startswith("obs/")},
+            g.get("continuous"),
+            g.get("discrete"),
+            g["present"],
+            self._targets[2],
+            self._targets[3],
+        )
+        fields = (*whole.obs.values(), whole.continuous, whole.discrete, whole.mask)
+        tensors = [
+            t for t in (*fields, whole.log_prob, *g.values(), self._targets) if t is not None
+        ]
+        return tuple(t.data_ptr() for t in tensors)
+
+    def _minibatch_loss(
+        self, index: torch.Tensor, scalars: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        assert self._group_bound is not None
+        return self.group_loss(self._group_bound[index], scalars[0], scalars[1])
+
+    def group_loss(
+        self, batch: GroupSteps, epsilon: float | torch.Tensor, beta: float | torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """ML-Agents' POCA loss on a minibatch."""
+        steps = batch.steps
+        log_prob, entropy, _ = self.network.evaluate(
+            steps.obs, steps.continuous, steps.discrete, steps.mask
+        )
+        terms = policy_terms(log_prob, entropy, steps, epsilon, beta)
+        value = self.critic.value(steps.obs, batch.mates, batch.present)
+        action = self.critic.flat_action(batch.mate_continuous, batch.mate_discrete)
+        baseline = self.critic.baseline(steps.obs, batch.mates, action, batch.present)
+        returns = steps.value_target
+        value_loss = trust_region_loss(value, batch.old_value, returns, epsilon)
+        baseline_loss = trust_region_loss(baseline, batch.old_baseline, returns, epsilon)
+        return {
+            "loss_objective": terms.pop("loss_objective"),
+            "loss_critic": 0.5 * value_loss,
+            "loss_baseline": 0.25 * baseline_loss,
+        } | terms
+
+    # --- checkpoints --------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**super().state_dict(), "critic": self.critic.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.critic.load_state_dict(state["critic"])
+        super().load_state_dict(state)
