@@ -12,7 +12,6 @@ from batches.contracts import base_name
 from driver.declaration import TrainingError
 from learners.config import DEFAULTS
 from learners.settings import RunConfig
-from learners.trainers import trainer
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +24,6 @@ class BehaviorNotes:
     def __init__(self, config: RunConfig, no_graphics: bool) -> None:
         self.config, self.no_graphics = config, no_graphics
         self.seen, self.named = set[str](), set[str]()  # behaviors, and their config names
-        self.grouped = set[str]()  # behaviors told about their group rewards
 
     def _unconfigured(self, name: str) -> None:
         """As mlagents-learn: without a file, the defaults and a warning; with one, its
@@ -49,19 +47,7 @@ class BehaviorNotes:
                 "add a default_settings: section (mlagents-learn stops here too)"
             )
 
-    def report(self, specs: Mapping[str, dict[str, Any]], grouped: set[str] = frozenset()) -> None:
-        for behavior in sorted(grouped - self.grouped):
-            self.grouped.add(behavior)
-            settings = self.config.for_behavior(behavior)
-            if trainer(settings).trains_group_rewards:
-                continue
-            log.warning(
-                "%s receives group rewards, which trainer_type %s does not train on (ML-Agents "
-                "trains them with POCA: set trainer_type: poca): its agents learn from their "
-                "own rewards only",
-                behavior,
-                settings.trainer_type,
-            )
+    def report(self, specs: Mapping[str, dict[str, Any]]) -> None:
         for behavior, spec in specs.items():
             if behavior in self.seen:
                 continue

@@ -262,7 +262,7 @@ def _run(
                 metrics = service.run(seconds=0.5, report_every=0.5)
                 learner = keeper.learner
                 progress = ray.get(learner.progress.remote())
-                notes.report(metrics.specs, metrics.group_rewarded())
+                notes.report(metrics.specs)
                 changed, reset = lessons.update(progress["steps"], metrics.episode_totals())
                 if changed:
                     service.set_environment_parameters(lessons.values(), reset)

@@ -33,6 +33,7 @@ from learners.modules import (
 )
 from learners.policies import ActorCritic
 from learners.ppo import actor_critic_report
+from learners.rewards import extrinsic_reward
 from learners.schedules import decay
 
 if TYPE_CHECKING:
@@ -86,7 +87,7 @@ class SegmentBuffer:
         batch = self.compute.to_device(torch.cat(self.segments, dim=0))
         self.segments, self.steps = [], 0
         network.update_normalization(dict(batch[keys.OBS].items()))
-        batch[keys.NEXT, keys.REWARD] = batch[keys.NEXT, keys.REWARD] * reward_strength
+        batch[keys.NEXT, keys.REWARD] = extrinsic_reward(batch) * reward_strength
         return add_flat_action(batch)
 
 

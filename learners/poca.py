@@ -8,8 +8,8 @@ many agents a group has (``learners/group_critic.py``). Read top to bottom, one 
   there, as PPO's;
 - the agents' own observations update the policy's and the critic's normalization;
 - the reward of a step is the agent's own, its group's, and its groupmates' of the same
-  exchange (ML-Agents' extrinsic signal under POCA, ``add_groupmate_rewards``), times
-  ``strength``;
+  exchange (ML-Agents' extrinsic signal under POCA, ``add_groupmate_rewards``;
+  ``learners/rewards.py``), times ``strength``;
 - V is the critic's value of the agent with its groupmates; the lambda-return runs along
   each trajectory on V (torchrl's GAE target is the same number), bootstrapping at its end
   from the group's next observations unless the agent's episode and every groupmate's
@@ -157,8 +157,8 @@ class POCA(PPO):
             end_mates = {k[4:]: v for k, v in e.items() if k.startswith("obs/")}
             end_value = self.critic.value(rows.end_obs, end_mates, e["present"])
             next_value[rows.end_rows] = end_value
-        shared = g["group_reward"] + (g["reward"] * present).sum(-1)
-        reward = (rows.reward + shared) * self.settings.reward_strength
+        mates_reward = (g["reward"] * present).sum(-1)
+        reward = (rows.reward + mates_reward) * self.settings.reward_strength
         _, returns = vec_generalized_advantage_estimate(
             self.settings.gamma,
             self.settings.hyperparameters.lambd,

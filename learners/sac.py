@@ -50,6 +50,7 @@ from batches import keys
 from learners.devices import Compute
 from learners.modules import PolicyParams
 from learners.policies import ActorCritic, SensorEncoder
+from learners.rewards import extrinsic_reward
 from learners.schedules import decay
 
 if TYPE_CHECKING:
@@ -172,7 +173,7 @@ class SAC:
                 **actions,
                 keys.NEXT: {
                     keys.OBS: nxt[keys.OBS],
-                    keys.REWARD: nxt[keys.REWARD] * self.settings.reward_strength,
+                    keys.REWARD: extrinsic_reward(segment) * self.settings.reward_strength,
                     keys.DONE: nxt[keys.DONE],
                     keys.TERMINATED: nxt[keys.TERMINATED],
                 },

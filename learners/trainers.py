@@ -39,8 +39,6 @@ class TrainerType:
     asynchronous: bool = False
     # ML-Agents' SAC policy: tanh-squashed actions, log-std from a head on the trunk
     squashed: bool = False
-    # learns from group rewards (the others leave them out, and the driver says so)
-    trains_group_rewards: bool = False
 
     def settings(self) -> TrainerSettings:
         """ML-Agents' defaults for this trainer type."""
@@ -89,7 +87,6 @@ TRAINERS: Mapping[str, TrainerType] = {
             "learners.poca:POCA",
             {**SHARED, **ON_POLICY, "max_policy_lag": int_from(0)},
             waits_for_fresh_data=True,
-            trains_group_rewards=True,
         ),
         TrainerType(  # not in ML-Agents: PPO's defaults, one epoch
             "impala",

@@ -11,8 +11,9 @@ observation of the step after it, so ``("next", "obs")`` is kept only where a tr
 ends without ``terminated`` (a horizon cut, MaxStep): there the estimator bootstraps from
 it. A terminated end bootstraps with 0 and needs none. ML-Agents' buffer keeps one copy too.
 
-With ``groupmates`` (POCA) the store also keeps each step's groupmates (``rollout.groups``)
-and group reward, and an agent's end counts as terminated only when every groupmate's
+The reward kept is the extrinsic signal's (``learners/rewards.py``: the group reward added).
+With ``groupmates`` (POCA) the store also keeps each step's groupmates (``rollout.groups``),
+and an agent's end counts as terminated only when every groupmate's
 episode ended too, as ML-Agents' POCA decides: an agent that leaves its group mid-episode
 bootstraps from the group's next observations, which are kept at such ends. Groupmate
 places (``M``) are padded to the most any segment brought.
@@ -28,6 +29,7 @@ import torch
 
 from batches import keys
 from learners.devices import free_memory
+from learners.rewards import extrinsic_reward
 
 if TYPE_CHECKING:
     from tensordict import TensorDictBase
@@ -56,7 +58,7 @@ class Rows:
     end_rows: torch.Tensor  # [e] int64: the ends that bootstrap, in row order
     end_obs: dict[str, torch.Tensor]  # [e, ...]: their next observations
     # groupmates only: "obs/<sensor>" [n, M, ...], "continuous", "discrete", "present",
-    # "reward" [n, M]; "group_reward" [n]; at the ends "obs/<sensor>" and "present"
+    # "reward" [n, M]; at the ends "obs/<sensor>" and "present"
     groupmates: dict[str, torch.Tensor] = field(default_factory=dict)
     end_groupmates: dict[str, torch.Tensor] = field(default_factory=dict)
 
@@ -127,8 +129,6 @@ class TrajectoryStore:
         obs = {k[4:]: v[:n] for k, v in self.columns.items() if k.startswith("obs/")}
         end_obs = {k[4:]: v[:e] for k, v in self.ends.items() if k.startswith("obs/")}
         mates = {k[5:]: v[:n] for k, v in self.columns.items() if k.startswith("mate_")}
-        if "group_reward" in self.columns:
-            mates["group_reward"] = self.columns["group_reward"][:n]
         end_mates = {k[5:]: v[:e] for k, v in self.ends.items() if k.startswith("mate_")}
         return Rows(
             obs=obs,
@@ -161,7 +161,7 @@ class TrajectoryStore:
         }
         fields.update({name: value for name, value in optional.items() if value is not None})
         fields["log_prob"] = segment[keys.LOG_PROB]
-        fields["reward"] = segment[keys.NEXT, keys.REWARD].reshape(-1)
+        fields["reward"] = extrinsic_reward(segment).reshape(-1)
         fields["done"] = segment[keys.NEXT, keys.DONE].reshape(-1)
         fields["terminated"] = segment[keys.NEXT, keys.TERMINATED].reshape(-1)
         fields["train"] = keep.to(torch.bool)
@@ -174,7 +174,6 @@ class TrajectoryStore:
                     fields["mate_" + name] = value
             fields["mate_present"] = mates[keys.PRESENT]
             fields["mate_reward"] = mates[keys.REWARD]
-            fields["group_reward"] = segment[keys.NEXT, keys.GROUP_REWARD].reshape(-1)
             # the group goes on while any groupmate's episode does: bootstrap from it
             going_on = (mates[keys.PRESENT] & ~mates[keys.DONE]).any(-1)
             fields["terminated"] = fields["terminated"] & ~going_on

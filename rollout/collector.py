@@ -51,7 +51,6 @@ class BehaviorStats:
     length_sum: int = 0
     rows: int = 0
     dropped_steps: int = 0
-    group_rewards: int = 0  # transitions with a nonzero group reward
     group_episodes: int = 0  # grouped agents' episodes that ended with their group
     group_return_sum: float = 0.0  # their group rewards
 
@@ -258,7 +257,6 @@ class Collector:
             stats.agent_steps = builder.counters.steps
             stats.rows = builder.counters.rows
             stats.dropped_steps = builder.counters.dropped_steps
-            stats.group_rewards = builder.counters.group_rewards
             group_returns = builder.drain_group_episodes()
             stats.group_episodes += len(group_returns)
             stats.group_return_sum += float(group_returns.sum())

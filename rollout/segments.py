@@ -51,7 +51,6 @@ class Counters:
     lost_steps: int = 0  # recorded transitions in rows thrown away (player failure)
     reset_steps: int = 0  # recorded transitions in rows thrown away (a lesson's reset)
     unmatched_terminals: int = 0  # terminal infos of agents that never acted
-    group_rewards: int = 0  # transitions with a nonzero group reward (only POCA trains them)
 
 
 class SegmentBuilder:
@@ -239,7 +238,6 @@ class SegmentBuilder:
             f[row][slots, t] = f[f"p_{row}"][slots]
         f["reward"][slots, t] = reward
         f["group_reward"][slots, t] = group_reward
-        self.counters.group_rewards += int(np.count_nonzero(group_reward))
         f["done"][slots, t] = done
         f["terminated"][slots, t] = done & ~truncated
         f["truncated"][slots, t] = truncated

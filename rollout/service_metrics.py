@@ -146,15 +146,6 @@ class ServiceMetrics:
                     )
         return totals
 
-    def group_rewarded(self) -> set[str]:
-        """The behaviors whose agents received a nonzero group reward, on any worker."""
-        return {
-            name
-            for worker in self.workers
-            for name, stats in worker.behaviors.items()
-            if stats.group_rewards
-        }
-
     def mean_returns(self) -> dict[str, float]:
         """Mean episode return per behavior, over every worker's finished episodes."""
         return {

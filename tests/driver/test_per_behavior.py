@@ -154,30 +154,3 @@ def test_cameras_without_graphics_are_a_warning(caplog):
         )
     (said,) = [r.getMessage() for r in caplog.records]
     assert said.startswith("Striker?team=0 observes images (sensor0) and the build runs without")
-
-
-def test_group_rewards_a_trainer_does_not_use_are_a_warning_once(caplog):
-    """Issue 30: group rewards reach every segment, and PPO/SAC/IMPALA do not train on
-    them: said once per behavior, naming POCA, so that nobody believes they are used."""
-    from driver.behavior_notes import BehaviorNotes
-
-    notes = BehaviorNotes(parse_config(TWO), no_graphics=False)
-    with caplog.at_level(logging.WARNING):
-        notes.report({NAMES["Striker"]: spec((8,))}, set())
-        assert caplog.records == []
-        notes.report({NAMES["Striker"]: spec((8,))}, {NAMES["Striker"]})
-        notes.report({NAMES["Striker"]: spec((8,))}, {NAMES["Striker"]})
-    (said,) = [r.getMessage() for r in caplog.records]
-    assert said.startswith("Striker?team=0 receives group rewards, which trainer_type ppo")
-    assert "POCA" in said
-
-
-def test_group_rewards_under_poca_are_trained_on_and_not_a_warning(caplog):
-    from driver.behavior_notes import BehaviorNotes
-
-    config = parse_config({"behaviors": {"Striker": {"trainer_type": "poca"}}})
-    with caplog.at_level(logging.WARNING):
-        BehaviorNotes(config, no_graphics=False).report(
-            {NAMES["Striker"]: spec((8,))}, {NAMES["Striker"]}
-        )
-    assert caplog.records == []

@@ -44,6 +44,7 @@ def segment(
     batch[keys.NEXT, keys.DONE] = cut
     batch[keys.NEXT, keys.TRUNCATED] = cut.clone()
     batch[keys.NEXT, keys.TERMINATED] = torch.zeros(n, 1, dtype=torch.bool)
+    batch[keys.NEXT, keys.GROUP_REWARD] = torch.zeros(n, 1)  # no group
     within = ~cut[:-1, 0]
     for name, obs in batch[keys.OBS].items():
         batch[keys.NEXT, keys.OBS, name][:-1][within] = obs[1:][within]

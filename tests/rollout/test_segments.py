@@ -119,28 +119,3 @@ def test_png_sensors_are_kept_as_exact_uint8_and_vectors_as_float32():
     assert not step_spec(spec).expand(4).is_in(batch.exclude(*keys.METADATA))
     image_bytes = obs["Camera"].nbytes + nxt["Camera"].nbytes
     assert image_bytes * 4 == 2 * 4 * 3 * 5 * 4 * 4  # float32 would be 4x
-
-
-def test_nonzero_group_rewards_are_counted_for_the_drivers_warning():
-    """What ``BehaviorNotes`` reads to say that a trainer other than POCA leaves group
-    rewards out: the transitions whose group reward is not zero."""
-    from mlagents_envs.base_env import DecisionSteps, TerminalSteps
-
-    from rollout.segments import Decisions, SegmentBuilder
-
-    spec = vector_spec(4, continuous=1)
-    builder = SegmentBuilder("B?team=0", spec, horizon=8)
-    ids = np.array([1, 2], np.int32)
-    chosen = Decisions(np.zeros((2, 1), np.float32), np.zeros((2, 0), np.int64), np.zeros((2, 1)))
-    for group_reward in ([0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [0.5, -0.5]):
-        decisions = DecisionSteps(
-            [np.zeros((2, 4), np.float32)],
-            np.zeros(2, np.float32),
-            ids,
-            None,
-            np.ones(2, np.int32),
-            np.array(group_reward, np.float32),
-        )
-        builder.observe(decisions, TerminalSteps.empty(spec))
-        builder.act(decisions, chosen, policy_version=0)
-    assert builder.counters.group_rewards == 3
