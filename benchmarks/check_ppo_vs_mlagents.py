@@ -22,6 +22,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -121,13 +122,47 @@ def ours(seed: int, out: Path) -> None:
     )
 
 
+def anchor_workarounds(anchor: Path) -> None:
+    """The anchor launcher's runtime workarounds, before ML-Agents is imported."""
+    preamble = (anchor / "mlagents_learn_launcher.py").read_text()
+    preamble = preamble.split("from mlagents.trainers.learn import main")[0]
+    exec(compile(preamble, "mlagents_learn_launcher.py", "exec"), {})
+
+
+def load_ours(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> None:
+    """Our initial weights into ML-Agents' modules, by ``names`` (ours -> (module, theirs))."""
+    import torch
+
+    for name, (module, theirs) in names.items():
+        state = modules[module].state_dict()
+        for part in ("weight", "bias"):
+            state[f"{theirs}.{part}"] = torch.from_numpy(d[f"initial/{name}.{part}"])
+        modules[module].load_state_dict(state)
+
+
+def worst_difference(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> float:
+    """The worst difference of ML-Agents' weights after its update from ours, relative to
+    how far the update moved each parameter; a parameter it did not move (by less than a
+    thousandth of the most any moved: one with no gradient, as an attention key's bias,
+    moves by Adam's step on rounding noise) is compared with that most."""
+    rows = []
+    for name, (module, theirs) in names.items():
+        for part in ("weight", "bias"):
+            mine = d[f"after/{name}.{part}"]
+            diff = float(
+                np.abs(modules[module].state_dict()[f"{theirs}.{part}"].numpy() - mine).max()
+            )
+            moved = float(np.abs(mine - d[f"initial/{name}.{part}"]).max())
+            print(f"  {name}.{part:<6} max |ML - ours| {diff:.1e}, moved by the update {moved:.1e}")
+            rows.append((diff, moved))
+    most = max(moved for _, moved in rows)
+    return max(diff / (moved if moved >= 1e-3 * most else most) for diff, moved in rows)
+
+
 def mlagents(case: Path, anchor: Path) -> float:
     """ML-Agents' PPO trainer and optimizer on the case's buffer; returns the worst
     difference from our weights, relative to how far the update moved them."""
-    preamble = (anchor / "mlagents_learn_launcher.py").read_text()
-    preamble = preamble.split("from mlagents.trainers.learn import main")[0]
-    exec(compile(preamble, "mlagents_learn_launcher.py", "exec"), {})  # its workarounds
-    import torch
+    anchor_workarounds(anchor)
     import yaml
     from mlagents.plugins.trainer_type import register_trainer_plugins
     from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
@@ -154,11 +189,7 @@ def mlagents(case: Path, anchor: Path) -> float:
     policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
     optimizer = TorchPPOOptimizer(policy, settings)
     modules = {"actor": policy.actor, "critic": optimizer.critic}
-    for name, (module, theirs) in ML_NAMES.items():
-        state = modules[module].state_dict()
-        for part in ("weight", "bias"):
-            state[f"{theirs}.{part}"] = torch.from_numpy(d[f"initial/{name}.{part}"])
-        modules[module].load_state_dict(state)
+    load_ours(modules, ML_NAMES, d)
 
     extrinsic = optimizer.reward_signals["extrinsic"]
     update, obs_key, horizon = AgentBuffer(), ObsUtil.get_name_at(0), int(d["horizon"])
@@ -198,21 +229,18 @@ def mlagents(case: Path, anchor: Path) -> float:
         for start in range(0, (n // h.batch_size) * h.batch_size, h.batch_size):
             optimizer.update(update.make_mini_batch(start, start + h.batch_size), h.batch_size)
 
-    worst = 0.0
-    for name, (module, theirs) in ML_NAMES.items():
-        for part in ("weight", "bias"):
-            mine = d[f"after/{name}.{part}"]
-            diff = float(
-                np.abs(modules[module].state_dict()[f"{theirs}.{part}"].numpy() - mine).max()
-            )
-            moved = float(np.abs(mine - d[f"initial/{name}.{part}"]).max())
-            print(f"  {name}.{part:<6} max |ML - ours| {diff:.1e}, moved by the update {moved:.1e}")
-            worst = max(worst, diff / max(moved, 1e-12))
-    return worst
+    return worst_difference(modules, ML_NAMES, d)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def main(
+    script: str = __file__,
+    ours: Callable[[int, Path], None] = ours,
+    mlagents: Callable[[Path, Path], float] = mlagents,
+    description: str = __doc__,
+) -> None:
+    """Both sides on each seed's case, ours here and ML-Agents' in the anchor's venv
+    (``script`` calls itself there); exits 1 unless they agree within ``TOLERANCE``."""
+    parser = argparse.ArgumentParser(description=description.split("\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument(
         "--anchor", type=Path, default=os.environ.get("MLAGENTS_ANCHOR", "/tmp/mlbench")
@@ -233,7 +261,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as work:
         for seed in args.seeds:
             case = Path(work) / f"case-{seed}.npz"
-            me = [sys.executable, __file__, "--case", str(case), "--anchor", str(args.anchor)]
+            me = [sys.executable, script, "--case", str(case), "--anchor", str(args.anchor)]
             subprocess.run([*me, "--side", "ours", "--seeds", str(seed)], check=True, cwd=ROOT)
             print(f"seed {seed}: weights after one update, ML-Agents' code against ours")
             theirs = [str(args.anchor / "venv/bin/python"), *me[1:], "--side", "mlagents"]

@@ -18,10 +18,13 @@ many agents a group has (``learners/group_critic.py``). Read top to bottom, one 
 - the advantage is the lambda-return minus the agent's counterfactual baseline (its
   groupmates' actions given, its own left out), normalized over the buffer;
 - ``num_epoch`` passes of shuffled minibatches: PPO's clipped surrogate per action
-  component, and the value and the baseline regressed on the lambda-return, each clipped
+  component, and the value and the baseline regressed on the lambda-return, weighed
+  ``policy + 0.5 (value + 0.5 baseline) - beta entropy``. The baseline's loss is clipped
   to ``epsilon`` around its estimate before the update (ML-Agents' trust-region value
-  loss, whose clip binds here: POCA's buffer holds the estimates), weighed
-  ``policy + 0.5 (value + 0.5 baseline) - beta entropy``.
+  loss); the value's is the plain squared error, which is what mlagents-learn 1.1.0
+  computes in effect, as for PPO: the old estimate its clip reads is the return (its
+  ``value_estimates_key`` names the returns' field), so that clip never binds.
+  ``benchmarks/check_poca_vs_mlagents.py`` checks one update against its code.
 
 Schedules, policy lag, the optimizer and checkpoints are PPO's (``learners/ppo.py``).
 """
@@ -49,14 +52,13 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class GroupSteps:
-    """PPO's steps with their groupmates and the estimates the value losses clip around."""
+    """PPO's steps with their groupmates and the baselines the baseline loss clips around."""
 
     steps: Steps  # value_target: the lambda-return
     mates: dict[str, torch.Tensor]  # sensor -> [N, M, ...]
     mate_continuous: torch.Tensor | None  # [N, M, c]
     mate_discrete: torch.Tensor | None  # [N, M, branches]
     present: torch.Tensor  # [N, M] bool
-    old_value: torch.Tensor  # [N]
     old_baseline: torch.Tensor  # [N]
 
     def __getitem__(self, index: torch.Tensor) -> GroupSteps:
@@ -69,7 +71,6 @@ class GroupSteps:
             pick(self.mate_continuous),
             pick(self.mate_discrete),
             self.present[index],
-            self.old_value[index],
             self.old_baseline[index],
         )
 
@@ -116,7 +117,7 @@ class POCA(PPO):
         advantage = (advantage - trained.mean()) / (trained.std() + 1e-10)
 
         lr, epsilon, beta = self.schedules(progress)
-        self.step.start(self._bind_group(advantage, returns, value, baseline), epsilon, beta)
+        self.step.start(self._bind_group(advantage, returns, baseline), epsilon, beta)
         self.epochs(train)
         mean = self.step.means()
         return {
@@ -182,10 +183,10 @@ class POCA(PPO):
 
     def _bind_group(self, *targets: torch.Tensor) -> tuple[int, ...]:
         """As PPO's ``_bind``: the store's whole columns, with this update's advantage,
-        lambda-return, V and baseline in buffers beside them (a CUDA graph reads them)."""
+        lambda-return and baseline in buffers beside them (a CUDA graph reads them)."""
         whole = self.store.whole()
         if self._targets is None or self._targets.shape[1] != len(whole):
-            self._targets = torch.zeros(4, len(whole), device=self.compute.torch_device)
+            self._targets = torch.zeros(3, len(whole), device=self.compute.torch_device)
         for row, values in enumerate(targets):
             self._targets[row, : len(values)] = values
         g = whole.groupmates
@@ -196,7 +197,6 @@ class POCA(PPO):
             g.get("discrete"),
             g["present"],
             self._targets[2],
-            self._targets[3],
         )
         fields = (*whole.obs.values(), whole.continuous, whole.discrete, whole.mask)
         tensors = [
@@ -223,7 +223,7 @@ class POCA(PPO):
         action = self.critic.flat_action(batch.mate_continuous, batch.mate_discrete)
         baseline = self.critic.baseline(steps.obs, batch.mates, action, batch.present)
         returns = steps.value_target
-        value_loss = trust_region_loss(value, batch.old_value, returns, epsilon)
+        value_loss = (returns - value).square().mean()
         baseline_loss = trust_region_loss(baseline, batch.old_baseline, returns, epsilon)
         return {
             "loss_objective": terms.pop("loss_objective"),

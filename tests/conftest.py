@@ -15,6 +15,12 @@ import pytest
 
 SESSION_TAG = "UNITY_ROLLOUT_TEST_SESSION"
 os.environ.setdefault(SESSION_TAG, uuid.uuid4().hex)
+# pytest-xdist's workers inherit the controller's tag: each gets its own, so that one
+# worker's checks never count the processes of a test running on another
+if (worker := os.environ.get("PYTEST_XDIST_WORKER")) and not os.environ[SESSION_TAG].endswith(
+    f"-{worker}"
+):
+    os.environ[SESSION_TAG] += f"-{worker}"
 
 
 RAY_MARKERS = ("raylet", "gcs_server", "ray/", "ray::", "default_worker", "dashboard")
