@@ -45,6 +45,7 @@ CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
 SUMMARY = re.compile(
     r"(\S+)\. Step: (\d+)\. Time Elapsed: [\d.]+ s\. Mean Reward: (-?\d+(?:\.\d+)?)"
 )
+GROUP = re.compile(r"Mean Group Reward: (-?\d+(?:\.\d+)?)")  # POCA's line, both trainers
 MARK = re.compile(r"\[mlbench-mark\] reset_env_done ([\d.]+)")
 TAG = "UNITY_ROLLOUT_BENCH_RUN"
 # the variants of a round: mlagents-learn and ours with ML-Agents' config, ours with ours
@@ -63,6 +64,7 @@ class Case:
     shipped_config: str | None  # in config/; None: no shipped config for this example
     targets: tuple[float, ...]  # reward levels, ascending; the last one is the goal
     cap_s: float  # a run not there by then is stopped and reported as not reaching it
+    group: bool = False  # measure the mean group reward (POCA's games), not the mean reward
 
 
 CASES = (
@@ -74,6 +76,16 @@ CASES = (
     ),
     # environment parameters: the ball's mass and scale resampled (ML-Agents' samplers)
     Case("3DBall_randomize-PPO", "3DBall", "ppo_3DBall_randomize.yaml", None, (50.0, 90.0), 900),
+    # a group reward for escaping, a knight sacrificed on the way: POCA
+    Case(
+        "DungeonEscape-POCA",
+        "DungeonEscape",
+        "poca_DungeonEscape.yaml",
+        "DungeonEscape.yaml",
+        (0.1, 0.5),
+        3600,
+        group=True,
+    ),
 )
 
 
@@ -126,8 +138,7 @@ def run_command(
     command: list[str],
     env: dict[str, str],
     run: Run,
-    targets: tuple[float, ...],
-    cap_s: float,
+    case: Case,
     stop_signal: signal.Signals,
     log: Path,
 ) -> None:
@@ -154,15 +165,21 @@ def run_command(
                 if (mark := MARK.search(line)) and run.first_step_s is None:
                     run.first_step_s = round(float(mark.group(1)) - started, 2)
                 if match := SUMMARY.search(line):
-                    run.summaries.append((now, int(match.group(2)), float(match.group(3))))
-                    if run.reached(targets[-1]) is not None:
+                    reward = float(match.group(3))
+                    if case.group:
+                        group = GROUP.search(line)
+                        if group is None:
+                            continue
+                        reward = float(group.group(1))
+                    run.summaries.append((now, int(match.group(2)), reward))
+                    if run.reached(case.targets[-1]) is not None:
                         done.set()
         done.set()
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
     try:
-        done.wait(cap_s)
+        done.wait(case.cap_s)
     finally:  # also on Ctrl-C: the run is in its own session, so stop it here
         if process.poll() is None:
             os.killpg(process.pid, stop_signal)  # graceful: the trainer stops its players
@@ -199,7 +216,7 @@ def anchor_run(case: Case, seed: int, build: Path, anchor: Path, work: Path, por
     ]
     env = {"PYTHONPATH": str(anchor / "shim"), "MLBENCH_MARKS": "1"}
     log = work / f"ml-{case.name}-{seed}.log"
-    run_command(command, env, run, case.targets, case.cap_s, signal.SIGTERM, log)
+    run_command(command, env, run, case, signal.SIGTERM, log)
     return run
 
 
@@ -226,7 +243,7 @@ def our_run(case: Case, seed: int, build: Path, config: Path, variant: str, work
         "--max-seconds",
         str(case.cap_s + 30),
     ]
-    run_command(command, {}, run, case.targets, case.cap_s, signal.SIGINT, work / f"{run_id}.log")
+    run_command(command, {}, run, case, signal.SIGINT, work / f"{run_id}.log")
     summary = work / "ours" / run_id / "summary.json"
     if summary.is_file():  # the moment its first worker's Unity answered
         first_step = json.loads(summary.read_text()).get("startup", {}).get("first_step_at")

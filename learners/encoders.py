@@ -24,17 +24,30 @@ from torch import nn
 
 from learners.image_acting import DENSE_GAIN, MIN_SIZE, ImageTooSmall, check_size
 
-__all__ = ["MIN_SIZE", "ImageTooSmall", "VisualEncoder", "check_size", "visual_encoder"]
+__all__ = [
+    "MIN_SIZE",
+    "ImageTooSmall",
+    "VisualEncoder",
+    "check_size",
+    "kaiming_linear",
+    "visual_encoder",
+]
 
 
-def _dense(width: int, out: int) -> nn.Linear:
-    """ML-Agents' encoder head: kaiming_normal (linear gain) x 1.41, zero bias."""
+def kaiming_linear(width: int, out: int, gain: float) -> nn.Linear:
+    """ML-Agents' ``KaimingHeNormal`` linear layer: std 1/sqrt(fan in) times ``gain``,
+    zero bias."""
     layer = nn.Linear(width, out)
     nn.init.kaiming_normal_(layer.weight, nonlinearity="linear")
     with torch.no_grad():
-        layer.weight.mul_(DENSE_GAIN)
+        layer.weight.mul_(gain)
     nn.init.zeros_(layer.bias)
     return layer
+
+
+def _dense(width: int, out: int) -> nn.Linear:
+    """ML-Agents' encoder head: kaiming_normal (linear gain) x 1.41."""
+    return kaiming_linear(width, out, DENSE_GAIN)
 
 
 class ResidualBlock(nn.Module):

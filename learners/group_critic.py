@@ -26,6 +26,7 @@ import torch
 from mlagents_envs.base_env import BehaviorSpec
 from torch import nn
 
+from learners.encoders import kaiming_linear
 from learners.policies import SensorEncoder
 from learners.settings import NetworkSettings
 
@@ -36,15 +37,6 @@ NEG_INF = -1e6  # ML-Agents' additive mask for absent keys
 def _normal(layer: nn.Linear, gain: float) -> nn.Linear:
     """ML-Agents' ``Initialization.Normal`` times a gain; zero bias."""
     nn.init.normal_(layer.weight)
-    with torch.no_grad():
-        layer.weight.mul_(gain)
-    nn.init.zeros_(layer.bias)
-    return layer
-
-
-def _kaiming(layer: nn.Linear, gain: float) -> nn.Linear:
-    """``kaiming_normal`` for a linear layer (std 1/sqrt(fan in)) times a gain."""
-    nn.init.kaiming_normal_(layer.weight, nonlinearity="linear")
     with torch.no_grad():
         layer.weight.mul_(gain)
     nn.init.zeros_(layer.bias)
@@ -99,7 +91,7 @@ class GroupCritic(nn.Module):
         self.attention = SelfAttention(h)
         layers: list[nn.Module] = []
         for _ in range(settings.num_layers):
-            layers += [_kaiming(nn.Linear(h, h), gain), nn.SiLU()]
+            layers += [kaiming_linear(h, h, gain), nn.SiLU()]
         self.trunk = nn.Sequential(*layers)
         self.value_head = nn.Linear(h + 1, 1)
         nn.init.xavier_uniform_(self.value_head.weight)

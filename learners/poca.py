@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
-from torchrl.objectives.value.functional import vec_generalized_advantage_estimate
 
 from learners.devices import Compute
 from learners.group_critic import GroupCritic
@@ -160,17 +159,8 @@ class POCA(PPO):
             next_value[rows.end_rows] = end_value
         mates_reward = (g["reward"] * present).sum(-1)
         reward = (rows.reward + mates_reward) * self.settings.reward_strength
-        _, returns = vec_generalized_advantage_estimate(
-            self.settings.gamma,
-            self.settings.hyperparameters.lambd,
-            values.unsqueeze(-1),
-            next_value.unsqueeze(-1),
-            reward.unsqueeze(-1),
-            rows.done.unsqueeze(-1),
-            rows.terminated.unsqueeze(-1),
-            time_dim=-2,
-        )
-        return values, baselines, returns.squeeze(-1)
+        _, returns = self.gae(rows, values, next_value, reward)
+        return values, baselines, returns
 
     def _chunked(
         self, fn: Callable[[slice], torch.Tensor], rows: Rows, entities: int

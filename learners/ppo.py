@@ -245,6 +245,13 @@ class PPO:
         next_value[:-1] = value[1:]
         next_value[rows.end_rows] = self.values(rows.end_obs)
         reward = rows.reward * self.settings.reward_strength
+        advantage, target = self.gae(rows, value, next_value, reward)
+        return value, advantage, target
+
+    def gae(
+        self, rows: Rows, value: torch.Tensor, next_value: torch.Tensor, reward: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """torchrl's vectorized GAE along the packed trajectories: (advantage, target)."""
         advantage, target = vec_generalized_advantage_estimate(
             self.settings.gamma,
             self.settings.hyperparameters.lambd,
@@ -255,7 +262,7 @@ class PPO:
             rows.terminated.unsqueeze(-1),
             time_dim=-2,
         )
-        return value, advantage.squeeze(-1), target.squeeze(-1)
+        return advantage.squeeze(-1), target.squeeze(-1)
 
     def values(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """V of many rows, in chunks of about ``VALUE_CHUNK_BYTES`` of float input, so a
