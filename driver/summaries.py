@@ -208,6 +208,8 @@ class Summaries:
                 f"Mean Reward: {window.last_reward:.3f}. Episode Length: {window.last_length:.1f}."
             )
             line += self._group_reward(writer, behavior, step, window, metrics)
+            if elo := window.losses.get("Self-play/ELO"):  # as mlagents-learn's line
+                line += f" ELO: {elo[-1]:.3f}."
         if self.live is None:
             elapsed = time.perf_counter() - self.started
             self.console.print(

@@ -10,6 +10,8 @@ import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
+from learners.settings import SelfPlaySettings
+
 SCHEDULES = ("linear", "constant")
 # ML-Agents' image encoders (learners.encoders builds them; torch-free names here)
 VIS_ENCODE_TYPES = ("simple", "nature_cnn", "resnet", "match3", "fully_connected")
@@ -153,8 +155,29 @@ def _optional_path(path: str, value: object) -> str | None:
     return value
 
 
+def _self_play(path: str, value: object) -> SelfPlaySettings:
+    """ML-Agents' ``self_play`` section; ``team_change`` defaults to 5 x ``save_steps``."""
+    checks: dict[str, Check] = {
+        "save_steps": POSITIVE_INT,
+        "team_change": POSITIVE_INT,
+        "swap_steps": POSITIVE_INT,
+        "window": POSITIVE_INT,
+        "play_against_latest_model_ratio": float_in(0, 1),
+        "initial_elo": float_in(),
+    }
+    given = {}
+    for key, item in section(path, value).items():
+        if key not in checks:
+            raise unknown_key(path, key, checks)
+        given[key] = checks[key](f"{path}.{key}", item)
+    if "team_change" not in given:
+        given["team_change"] = 5 * given.get("save_steps", SelfPlaySettings.save_steps)
+    return SelfPlaySettings(**given)
+
+
 TOP: dict[str, Check] = {
     "init_path": _optional_path,  # a checkpoint to start this behavior from
+    "self_play": _self_play,
     "max_steps": POSITIVE_INT,
     "time_horizon": POSITIVE_INT,
     "summary_freq": POSITIVE_INT,
@@ -163,7 +186,6 @@ TOP: dict[str, Check] = {
 }
 TOP_UNSUPPORTED: dict[str, object] = {
     "threaded": False,  # workers wait for each update's weights, as unthreaded ML-Agents
-    "self_play": None,
     "behavioral_cloning": None,
     "even_checkpoints": False,
 }

@@ -6,9 +6,15 @@ is the Ray shell the CLI starts. Behaviors are discovered from the segments them
 (each carries its ``BehaviorSpec`` as a dict), and built with the same
 ``PolicyFactory`` the workers use, so learner and worker networks always match.
 
-Versions: one global counter, bumped by every update of any behavior. Policy lag of a
-step is counted in updates *of its own behavior* since the version that acted, so two
-behaviors learning side by side do not make each other's data look stale.
+Versions: one global counter, bumped by every update of any behavior (and by every
+change of what a self-play team acts with). Policy lag of a step is counted in updates *of
+its own behavior* since the version that acted, so two behaviors learning side by side do
+not make each other's data look stale.
+
+Self-play (``learners/self_play.py``): the teams of a brain with a ``self_play`` section
+share one behavior state (keyed by the first team seen); only the steps the learning
+policy acted reach its algorithm, and each team's weights are the learning policy's or
+its opponent snapshot.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ from learners.counters import LearnerStats, Sources, all_done, demand
 from learners.devices import Compute, to_cpu
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
+from learners.self_play import SelfPlay, as_brain, learning_steps, team_of
 from learners.trainers import trainer
 from learners.trajectory_store import BufferTooLarge
 
@@ -99,6 +106,8 @@ class CentralLearner:
         self._sources = Sources()
         self._reports: list[tuple[str, int, dict[str, float]]] = []
         self._published: tuple[int, dict[str, dict[str, np.ndarray]]] | None = None
+        self.self_play = SelfPlay(seed)
+        self._keys: dict[str, str] = {}  # behavior id -> its state's key (self-play: shared)
 
     def prepare(self) -> None:
         """Load the algorithms' modules (torchrl, tensordict: seconds of CPU) before the
@@ -120,18 +129,45 @@ class CentralLearner:
                 segment = segment.to_tensordict()
             behavior = segment.get_non_tensor(keys.BEHAVIOR)
             state = self._behavior(behavior, segment.get_non_tensor(keys.SPEC))
-            lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])
-            state.steps += segment.batch_size[0]
-            if self.inference:
-                continue
-            try:
-                state.algorithm.add(segment, lag)
-            except BufferTooLarge as error:  # before the buffer exists: one line, no OOM kill
-                raise MemoryError(f"behavior {base_name(behavior)}: {error}") from None
-            if state.algorithm.ready():
-                self._update(behavior, state)
+            key = self._keys[behavior]
+            if state.settings.self_play is not None:
+                segment = self._learning_part(behavior, state, segment)
+            if segment is not None and len(segment):
+                self._learn(key, state, segment)
+            if state.settings.self_play is not None:
+                current = lambda s=state: numpy_state(s.network)  # noqa: E731
+                finished = state.steps >= (self.max_steps or state.settings.max_steps)
+                brain, version = base_name(key), self.version + 1
+                if self.self_play.advance(brain, state.steps, version, current, finished):
+                    self.version += 1
         self.stats.submit_seconds += time.perf_counter() - started
         return self.version, self.wanted()
+
+    def _learn(self, key: str, state: BehaviorState, segment: TensorDict) -> None:
+        lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])
+        state.steps += segment.batch_size[0]
+        if self.inference:
+            return
+        try:
+            state.algorithm.add(segment, lag)
+        except BufferTooLarge as error:  # before the buffer exists: one line, no OOM kill
+            raise MemoryError(f"behavior {base_name(key)}: {error}") from None
+        if state.algorithm.ready():
+            self._update(key, state)
+
+    def _learning_part(
+        self, behavior: str, state: BehaviorState, segment: TensorDict
+    ) -> TensorDict | None:
+        """Self-play: the steps of ``segment`` the learning policy acted (the others count
+        as the brain's ghost steps), under the brain's sensor names; their finished games
+        move the ELO."""
+        brain, team = base_name(behavior), team_of(behavior)
+        learning = self.self_play.learning(team, segment[keys.POLICY_VERSION])
+        self.self_play.ghosts[brain].ghost_steps += int((~learning).sum())
+        if not bool(learning.any()):
+            return None
+        self.self_play.record_games(brain, segment, learning)
+        return as_brain(learning_steps(segment, learning), state.network.sensor_names)
 
     def wanted(self) -> int | None:
         """Steps before the next on-policy update of any behavior (None: no such behavior),
@@ -145,28 +181,45 @@ class CentralLearner:
     def weights(self) -> tuple[int, dict[str, dict[str, np.ndarray]]]:
         """Numpy weights (a worker loads them without importing torch), copied off the
         device once per version and behavior set, however many workers ask."""
-        names = tuple(self.behaviors)
+        names = tuple(self._keys)
         if (
             self._published is None
             or self._published[0] != self.version
             or (tuple(self._published[1]) != names)
         ):
-            states = {name: numpy_state(s.network) for name, s in self.behaviors.items()}
+            current = {key: numpy_state(s.network) for key, s in self.behaviors.items()}
+            states = {}
+            for behavior, key in self._keys.items():
+                states[behavior] = current[key]
+                if self.behaviors[key].settings.self_play is not None:
+                    brain, team = base_name(behavior), team_of(behavior)
+                    states[behavior] = self.self_play.weights_of(brain, team, current[key])
             self._published = (self.version, states)
         return self._published
 
     # --- internals ----------------------------------------------------------------------
 
     def _behavior(self, behavior: str, spec: dict[str, Any]) -> BehaviorState:
-        if behavior not in self.behaviors:
-            settings = self.config.for_behavior(behavior)
-            network = self.factory.network(behavior, spec_from_dict(spec))
+        if behavior in self._keys:
+            return self.behaviors[self._keys[behavior]]
+        settings = self.config.for_behavior(behavior)
+        key = behavior
+        if settings.self_play is not None:  # the brain's first team holds its state
+            brain = base_name(behavior)
+            key = next((k for k in self.behaviors if base_name(k) == brain), behavior)
+        if key not in self.behaviors:
+            network = self.factory.network(key, spec_from_dict(spec))
             self.compute.place(network)
             network.autocast = self.compute.autocast
-            self.behaviors[behavior] = BehaviorState(
+            self.behaviors[key] = BehaviorState(
                 spec, settings, network, make_algorithm(network, settings, self.compute)
             )
-        return self.behaviors[behavior]
+        self._keys[behavior] = key
+        state = self.behaviors[key]
+        if settings.self_play is not None:
+            brain, team = base_name(behavior), team_of(behavior)
+            self.self_play.join(brain, team, settings.self_play, numpy_state(state.network))
+        return state
 
     def _update(self, behavior: str, state: BehaviorState) -> None:
         started = time.perf_counter()
@@ -177,6 +230,8 @@ class CentralLearner:
         self.stats.updates += 1
         self.version += 1
         state.updates.append(self.version)
+        if state.settings.self_play is not None:
+            report["Self-play/ELO"] = self.self_play.ghosts[base_name(behavior)].elo
         self._reports.append((behavior, state.steps, report))
 
     # --- for the driver -----------------------------------------------------------------
@@ -213,6 +268,8 @@ class CentralLearner:
                     for name, s in self.behaviors.items()
                     if behaviors is None or name in behaviors
                 },
+                "behavior_keys": dict(self._keys),
+                "self_play": self.self_play.state_dict() if self.self_play.ghosts else None,
             }
         )
 
@@ -232,6 +289,13 @@ class CentralLearner:
             behavior.algorithm.load_state_dict(entry["algorithm"])
             behavior.steps = int(entry["steps"])
             behavior.updates = [int(v) for v in entry["updates"]]
+        for behavior, key in state.get("behavior_keys", {}).items():
+            if key in self.behaviors:
+                self._keys[behavior] = key
+        if state.get("self_play") is not None:
+            brains = {base_name(key) for key in self.behaviors}
+            settings = {b: self.config.for_behavior(b).self_play for b in brains}
+            self.self_play.load_state_dict(state["self_play"], settings)
 
 
 __all__ = ["Algorithm", "CentralLearner"]

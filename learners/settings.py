@@ -65,6 +65,18 @@ class Hyperparameters:
 
 
 @dataclass(frozen=True)
+class SelfPlaySettings:
+    """ML-Agents' ``self_play`` section (its defaults): ``learners/self_play.py``."""
+
+    save_steps: int = 20_000  # trainer steps between snapshots of the learning policy
+    team_change: int = 100_000  # trainer steps between learning teams (ML: 5 x save_steps)
+    swap_steps: int = 2_000  # ghost steps between opponents
+    window: int = 10  # snapshots kept to play against
+    play_against_latest_model_ratio: float = 0.5
+    initial_elo: float = 1200.0
+
+
+@dataclass(frozen=True)
 class TrainerSettings:
     """The settings of one behavior, resolved (nothing left to merge)."""
 
@@ -79,6 +91,7 @@ class TrainerSettings:
     checkpoint_interval: int = 500_000
     keep_checkpoints: int = 5
     init_path: str | None = None  # a checkpoint (file or folder) this behavior starts from
+    self_play: SelfPlaySettings | None = None  # None: no self-play
 
 
 @dataclass(frozen=True)

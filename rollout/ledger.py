@@ -80,13 +80,16 @@ class Ledger:
     def _entry(self, index: int, incarnation: str, behavior: str) -> Entry:
         return self._entries.setdefault((index, incarnation, behavior), Entry())
 
-    def arrived(self, index: int, collected: Collected) -> None:
-        """A collect came back: its worker's counts, as of now."""
+    def arrived(self, index: int, collected: Collected) -> bool:
+        """A collect came back: its worker's counts, as of now. True when it comes from a
+        new incarnation no failure announced (Ray restarted the worker unseen)."""
         previous = self._current.get(index)
-        if previous is not None and previous != collected.incarnation:
+        unseen = previous is not None and previous != collected.incarnation
+        if unseen:
             self.ended(index, WORKER_DEATH)  # Ray restarted it without our seeing
         self._current[index] = collected.incarnation
         self._counts[(index, collected.incarnation)] = collected.counts
+        return unseen
 
     def book(self, index: int, incarnation: str, steps: dict[str, int], how: str) -> None:
         """Steps of arrived segments, per behavior: ``delivered`` or a drop reason."""

@@ -75,6 +75,7 @@ class RolloutService(WorkerSupervision):
         self._wanted: int | None = None  # the learner's last answer: steps before its update
         self._failures: list[int] = []  # consecutive failed collects per worker
         self._restarting: dict[int, float] = {}  # worker index -> when it went away
+        self._counted_unseen: set[int] = set()  # restarts WeightsLost counted before arrival
         self._retry_at: dict[int, float] = {}  # worker index -> when to ask it again
         self._reports = WorkerReports()
         self._stale: set[ray.ObjectRef] = set()  # collects acted by a dead learner's weights
@@ -250,7 +251,10 @@ class RolloutService(WorkerSupervision):
             segments = ray.get(ref)
         except RayError as error:
             return self._collect_failed(index, ref, error)
-        self.ledger.arrived(index, segments)
+        if self.ledger.arrived(index, segments) and not self._take_counted(index):
+            # it died idle and new weights reached its new incarnation: no call failed
+            self.metrics.worker_restarts += 1
+            log.warning("worker %d was restarted by Ray while idle", index)
         if ref in self._stale:  # weights the restored learner never had: drop
             self._stale.discard(ref)
             self.ledger.book(index, segments.incarnation, steps_of(segments), LEARNER_RESTART)

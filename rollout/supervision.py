@@ -45,6 +45,7 @@ class WorkerSupervision:
     _failures: list[int]
     _worker_version: list[int]
     _restarting: dict[int, float]
+    _counted_unseen: set[int]
     _retry_at: dict[int, float]
     _stale: set[Any]
     _dead_learners: set[str]
@@ -66,6 +67,7 @@ class WorkerSupervision:
             if isinstance(cause, WeightsLost):  # restarted: resend the weights
                 if index not in self._restarting:  # a death not seen yet (it was idle)
                     self._count_failure(index, error)
+                    self._counted_unseen.add(index)
                 self._worker_version[index] = 0  # also when a retry had sent them before
                 self._idle.add(index)
                 return 0
@@ -135,6 +137,12 @@ class WorkerSupervision:
                 f"last: {last_line(error)}"
             )
         log.warning("worker %d left (%s): %d live", index, last_line(error), len(self.live()))
+
+    def _take_counted(self, index: int) -> bool:
+        """Whether this worker's unseen restart was counted already (through WeightsLost)."""
+        counted = index in self._counted_unseen
+        self._counted_unseen.discard(index)
+        return counted
 
     def _count_failure(self, index: int, error: Exception) -> None:
         """A worker died: count it, end the run if it keeps dying, else let Ray restart it."""

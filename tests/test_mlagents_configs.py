@@ -1,5 +1,5 @@
 """Acceptance for a user arriving from mlagents-learn: every one of ML-Agents' own example
-configs that needs neither self-play, memory, demonstrations nor intrinsic rewards
+configs that needs neither memory, demonstrations nor intrinsic rewards
 (``tests/mlagents_configs/``, unchanged) runs on its unitysim environment in local mode
 with no unsupported-feature report, no other warning and no error, for a short budget of
 steps (how they learn is for the benchmarks)."""
@@ -30,6 +30,8 @@ def environment(path: Path) -> str:
 def test_the_copies_are_the_ones_the_issue_names():
     assert [f"{p.parent.name}/{p.stem}" for p in FILES] == [
         "poca/DungeonEscape",
+        "poca/SoccerTwos",
+        "poca/StrikersVsGoalie",
         *(f"ppo/{n}" for n in ("3DBall", "3DBallHard", "3DBall_randomize", "Basic")),
         *(f"ppo/{n}" for n in ("FoodCollector", "GridWorld", "Walker", "WallJump")),
         "ppo/WallJump_curriculum",

@@ -342,7 +342,6 @@ torch_settings: {device: cpu}
         config = parse(text)
     assert set(config.unsupported) == {
         "default_settings.threaded",
-        "behaviors.Pyramids.self_play",
         "behaviors.Pyramids.behavioral_cloning",
         "behaviors.Pyramids.network_settings.memory",
         "behaviors.Pyramids.reward_signals.curiosity",

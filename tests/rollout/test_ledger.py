@@ -60,9 +60,10 @@ def test_a_lost_delivery_unbalances_the_books():
 
 def test_a_restart_seen_only_through_a_new_incarnation_closes_the_old_one():
     ledger = Ledger()
-    ledger.arrived(0, collected("a", 10, 4))
+    assert not ledger.arrived(0, collected("a", 10, 4))
     ledger.book(0, "a", {"B?team=0": 4}, "delivered")
-    ledger.arrived(0, collected("b", 3, 0))  # no death seen: the new incarnation says so
+    # no death seen: the new incarnation says so (and the service counts the restart)
+    assert ledger.arrived(0, collected("b", 3, 0))
     ledger.ended(0, SHUTDOWN, collected("b", 3, 0))
     summary = ledger.summary()
     assert summary["balanced"] and summary["dropped"][WORKER_DEATH] == 6

@@ -21,6 +21,7 @@ def supervisor(max_restarts: int) -> WorkerSupervision:
     s.metrics = SimpleNamespace(worker_restarts=0)  # type: ignore[assignment]
     s.membership = None
     s._idle, s._failures, s._restarting, s._retry_at = set(), [0], {}, {}
+    s._counted_unseen = set()
     s._worker_version = [20]
     s.learner = SimpleNamespace(_actor_id=bytes.fromhex("1e"))
     s._dead_learners, s._stale = {"de"}, set()
