@@ -21,7 +21,13 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from check_ppo_vs_mlagents import anchor_workarounds, load_ours, main, worst_difference
+from check_ppo_vs_mlagents import (
+    anchor_workarounds,
+    load_ours,
+    main,
+    train_in_order,
+    worst_difference,
+)
 
 BEHAVIOR, OBS_SIZE, BRANCH, MATES = "Knights", 6, 3, 2
 ROWS, HORIZON = 24, 16
@@ -285,13 +291,7 @@ def mlagents(case_file: Path, anchor: Path) -> float:
         buffer[RewardSignalUtil.advantage_key("extrinsic")].set(advantage)
         buffer[BufferKey.ADVANTAGES].set(list(advantage))
         buffer.resequence_and_append(update, training_length=policy.sequence_length)
-    advantages = np.array(update[BufferKey.ADVANTAGES].get_batch(), dtype=np.float32)
-    normalized = (advantages - advantages.mean()) / (advantages.std() + 1e-10)
-    update[BufferKey.ADVANTAGES].set(normalized)  # as its trainer's _update_policy
-    n = update.num_experiences
-    for _ in range(h.num_epoch):  # its trainer shuffles here; ours is told not to either
-        for start in range(0, (n // h.batch_size) * h.batch_size, h.batch_size):
-            optimizer.update(update.make_mini_batch(start, start + h.batch_size), h.batch_size)
+    train_in_order(update, optimizer, h)
     return worst_difference(modules, ML_NAMES, d)
 
 

@@ -24,6 +24,7 @@ import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -221,15 +222,23 @@ def mlagents(case: Path, anchor: Path) -> float:
         trajectory[RewardSignalUtil.advantage_key("extrinsic")].set(advantage)
         trajectory[BufferKey.ADVANTAGES].set(list(advantage))
         trajectory.resequence_and_append(update, training_length=policy.sequence_length)
+    train_in_order(update, optimizer, settings.hyperparameters)
+    return worst_difference(modules, ML_NAMES, d)
+
+
+def train_in_order(update: Any, optimizer: Any, h: Any) -> None:
+    """ML-Agents' ``_update_policy`` on its update buffer: the whole-buffer advantage
+    normalization, then ``num_epoch`` passes of its optimizer's ``update`` over the
+    minibatches, in order (its trainer shuffles here; ours is told not to either)."""
+    from mlagents.trainers.buffer import BufferKey
+
     advantages = np.array(update[BufferKey.ADVANTAGES].get_batch(), dtype=np.float32)
     normalized = (advantages - advantages.mean()) / (advantages.std() + 1e-10)
-    update[BufferKey.ADVANTAGES].set(normalized)  # as its trainer's _update_policy
-    h, n = settings.hyperparameters, update.num_experiences
-    for _ in range(h.num_epoch):  # its trainer shuffles here; ours is told not to either
+    update[BufferKey.ADVANTAGES].set(normalized)
+    n = update.num_experiences
+    for _ in range(h.num_epoch):
         for start in range(0, (n // h.batch_size) * h.batch_size, h.batch_size):
             optimizer.update(update.make_mini_batch(start, start + h.batch_size), h.batch_size)
-
-    return worst_difference(modules, ML_NAMES, d)
 
 
 def main(
