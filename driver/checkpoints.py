@@ -57,6 +57,9 @@ class Checkpoints:
             steps = int(entry["steps"])
             folder = self.directory / behavior_folder(behavior)
             one = {"step": steps, "version": state["version"], "behaviors": {behavior: entry}}
+            for key in ("behavior_keys", "self_play"):  # run-wide: in every behavior's file
+                if state.get(key) is not None:
+                    one[key] = state[key]
             saved.append(checkpoint.save(folder / f"step-{steps:010d}.pt", {**one, "meta": meta}))
             self.next_step[behavior] = next_multiple(steps, settings.checkpoint_interval)
             for old in checkpoint.newest_first(folder)[settings.keep_checkpoints :]:

@@ -257,12 +257,16 @@ def _run(
         ) as summaries,
     ):
         summaries.lessons = lessons.lessons  # the plan's own dict: updated in place
+        met: set[str] = set()
         while not received:
             try:
                 metrics = service.run(seconds=0.5, report_every=0.5)
                 learner = keeper.learner
                 progress = ray.get(learner.progress.remote())
                 notes.report(metrics.specs)
+                if set(metrics.specs) - met:  # new behaviors: self-play teams join now
+                    met |= set(metrics.specs)
+                    learner.meet.remote(dict(metrics.specs))
                 changed, reset = lessons.update(progress["steps"], metrics.episode_totals())
                 if changed:
                     service.set_environment_parameters(lessons.values(), reset)

@@ -169,6 +169,14 @@ class CentralLearner:
         self.self_play.record_games(brain, segment, learning)
         return as_brain(learning_steps(segment, learning), state.network.sensor_names)
 
+    def meet(self, specs: dict[str, dict[str, Any]]) -> None:
+        """Behaviors the workers saw (``{behavior: spec dict}``), before any of their rows
+        arrive: a self-play team joins its controller's turns then, as in mlagents-learn
+        (a goalie's first row may take a long ``time_horizon`` to come)."""
+        for behavior, spec in specs.items():
+            if self.config.for_behavior(behavior).self_play is not None:
+                self._behavior(behavior, spec)
+
     def wanted(self) -> int | None:
         """Steps before the next on-policy update of any behavior (None: no such behavior),
         and never more than the run still needs (0: it has them all). The service holds

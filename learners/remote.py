@@ -97,7 +97,8 @@ class LearnerHost:
         if self._early:
             early, self._early = self._early, []
             for segment in early:  # one by one: progress counts each as it moves over
-                self._early_steps[_behavior(segment)] -= len(segment)
+                if (behavior := _behavior(segment)) in self._early_steps:
+                    self._early_steps[behavior] -= len(segment)
                 self._learner.submit([segment])
         return self._learner
 
@@ -124,6 +125,8 @@ class LearnerHost:
                 continue
             self._early.append(segment)
             behavior = _behavior(segment)
+            if self.config.for_behavior(behavior).self_play is not None:
+                continue  # which of its steps count (the learning team's) is for the learner
             self._early_steps[behavior] = self._early_steps.get(behavior, 0) + len(segment)
 
     def _early_wanted(self) -> int | None:
@@ -135,6 +138,10 @@ class LearnerHost:
             if trainer(settings := self.config.for_behavior(behavior)).waits_for_fresh_data
         ]
         return demand(self._early_steps, self.config, self.max_steps, wants, self.inference)
+
+    def meet(self, specs: dict[str, dict[str, Any]]) -> None:
+        with self._lock:
+            self.learner.meet(specs)
 
     def weights(self) -> tuple[int, dict[str, Any]]:
         with self._lock:

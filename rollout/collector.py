@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
+from batches import specs
 from batches.contracts import Actor, ActorFactory, Weights
 from batches.parameters import Values
 from batches.segment import Segment
@@ -68,6 +69,7 @@ class CollectorMetrics:
     seconds: float = 0.0
     first_step_at: float | None = None  # wall clock (time.time) of Unity's first answer
     incarnation: str = ""  # this worker process's id: a restarted worker starts anew
+    specs: dict[str, dict] = field(default_factory=dict)  # behaviors met: spec_to_dict
 
 
 class Collector:
@@ -203,6 +205,7 @@ class Collector:
             behavior, spec, self.horizons(behavior), worker=self.worker, pixel_sensors=pixels
         )
         self.builders[behavior] = builder
+        self.metrics.specs[behavior] = specs.spec_to_dict(spec)
         actor = self.actor_factory(behavior, spec)
         if behavior in self.weights:
             actor.load_state_dict(self.weights[behavior])

@@ -79,7 +79,7 @@ class ServiceMetrics:
     seconds: float = 0.0
     workers: list[CollectorMetrics] = field(default_factory=list)
     unity_stats: dict[str, Stat] = field(default_factory=dict)  # since the last drain
-    specs: dict[str, dict[str, Any]] = field(default_factory=dict)  # behaviors routed so far
+    specs: dict[str, dict[str, Any]] = field(default_factory=dict)  # behaviors seen so far
 
     def drain_unity_stats(self) -> dict[str, Stat]:
         """Unity's custom statistics since the last call (the summaries take them)."""
@@ -93,6 +93,9 @@ class ServiceMetrics:
         self.agent_steps = sum(w.agent_steps for w in workers)
         self.unity_restarts = sum(w.restarts for w in workers)
         self.dropped_steps = sum(w.dropped_steps for w in workers)
+        for worker in workers:  # behaviors seen, before their first rows arrive
+            for behavior, spec in worker.specs.items():
+                self.specs.setdefault(behavior, spec)
 
     def observe(self, version: int, segments: list) -> None:
         """Segments routed while ``version`` is the newest: their count and policy lag."""

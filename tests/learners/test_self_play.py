@@ -180,3 +180,15 @@ def test_a_side_that_has_its_max_steps_hands_over_to_the_other():
     for seed in range(4):
         learner.submit([played("Goalie?team=1", learner.version, seed=10 + seed)])
     assert learner.progress()["done"]
+
+
+def test_teams_the_workers_met_join_before_their_first_rows():
+    """A goalie's first row may take its time_horizon to come: the workers' specs say it
+    plays, and the striker hands over when it has its steps."""
+    learner = CentralLearner(config(("Striker", "Goalie")), max_steps=30)
+    learner.meet({"Striker?team=0": learner_spec(), "Goalie?team=1": learner_spec()})
+    assert learner.self_play.team_ghost == {0: "Striker", 1: "Goalie"}
+    for seed in range(4):
+        learner.submit([played("Striker?team=0", learner.version, seed=seed)])
+    assert learner.self_play.learning_team == 1  # no goalie row has arrived yet
+    assert set(learner.weights()[1]) == {"Striker?team=0", "Goalie?team=1"}
