@@ -227,10 +227,12 @@ class SegmentBuilder:
         t = f["length"][slots]
         acted = [f[f"p_obs/{name}"][slots] for name, _ in self._sensors]
         now = [self._stored(name, v) for (name, _), v in zip(self._sensors, next_obs, strict=True)]
-        self.groups.set_status(
-            slots, group, acted, f["p_cont"][slots], f["p_disc"][slots], now, reward, done
-        )
-        mates_play_on = self.groups.record(slots, t, group)
+        mates_play_on = np.zeros(len(slots), np.bool_)
+        if self.groups.capacity or (group > 0).any():  # none of it for behaviors sans groups
+            self.groups.set_status(
+                slots, group, acted, f["p_cont"][slots], f["p_disc"][slots], now, reward, done
+            )
+            mates_play_on = self.groups.record(slots, t, group)
         for (name, _), before, after in zip(self._sensors, acted, now, strict=True):
             f[f"obs/{name}"][slots, t] = before
             f[f"next/{name}"][slots, t] = after
