@@ -1,7 +1,8 @@
 """The contracts the actor side and the learner meet at: what a worker needs of a policy
 (:class:`Actor`, made per behavior by an :data:`ActorFactory`), the weights a learner
-publishes (:data:`Weights`), and the learner itself (:class:`Learner`). ``rollout``
-calls them and ``learners`` implements them; both import them from here.
+publishes (:data:`Weights`; a :class:`Snapshot` for a fixed policy), and the learner
+itself (:class:`Learner`). ``rollout`` calls them and ``learners`` implements them; both
+import them from here.
 
 The service forwards each worker's segments (an ObjectRef to ``list[Segment]``, the
 format of docs/batch-format.md; a ``rollout.ledger.Collected``, a list that also carries
@@ -18,6 +19,7 @@ idle workers wait for those weights.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -25,7 +27,19 @@ from mlagents_envs.base_env import BehaviorSpec
 
 from batches.segment import Segment
 
-Weights = dict[str, dict[str, Any]]  # behavior -> state_dict (the factory's actors load it)
+
+@dataclass(frozen=True)
+class Snapshot:
+    """A policy that never changes under its ``key`` (a self-play opponent), inside
+    :data:`Weights`: a worker loads it once, however many versions carry it. ``state``: its
+    state_dict, or a reference to it (a Ray ObjectRef, put once) that a worker without
+    the key resolves."""
+
+    key: str
+    state: Any
+
+
+Weights = dict[str, dict[str, Any] | Snapshot]  # behavior -> state_dict the actors load
 
 
 def base_name(behavior: str) -> str:

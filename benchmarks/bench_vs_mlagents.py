@@ -45,7 +45,10 @@ CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
 SUMMARY = re.compile(
     r"(\S+)\. Step: (\d+)\. Time Elapsed: [\d.]+ s\. Mean Reward: (-?\d+(?:\.\d+)?)"
 )
-GROUP = re.compile(r"Mean Group Reward: (-?\d+(?:\.\d+)?)")  # POCA's line, both trainers
+MEASURES = {  # what a summary line adds, as both trainers print it
+    "group": re.compile(r"Mean Group Reward: (-?\d+(?:\.\d+)?)"),  # POCA
+    "elo": re.compile(r"ELO: (-?\d+(?:\.\d+)?)"),  # self-play
+}
 MARK = re.compile(r"\[mlbench-mark\] reset_env_done ([\d.]+)")
 TAG = "UNITY_ROLLOUT_BENCH_RUN"
 # the variants of a round: mlagents-learn and ours with ML-Agents' config, ours with ours
@@ -62,9 +65,10 @@ class Case:
     env: str  # unitysim environment, built as a player for both trainers
     mlagents_config: str  # in benchmarks/mlagents_configs/
     shipped_config: str | None  # in config/; None: no shipped config for this example
-    targets: tuple[float, ...]  # reward levels, ascending; the last one is the goal
+    targets: tuple[float, ...]  # reward levels, ascending; () : mlagents-learn's end level
     cap_s: float  # a run not there by then is stopped and reported as not reaching it
-    group: bool = False  # measure the mean group reward (POCA's games), not the mean reward
+    measure: str = "reward"  # or "group" (POCA's mean group reward), "elo" (self-play)
+    behavior: str | None = None  # read this behavior's summary lines only (None: any)
 
 
 CASES = (
@@ -84,7 +88,19 @@ CASES = (
         "DungeonEscape.yaml",
         (0.1, 0.5),
         3600,
-        group=True,
+        measure="group",
+    ),
+    # self-play, ML-Agents' configs: ELO, to the level mlagents-learn ends its run at
+    Case("SoccerTwos-POCA", "SoccerTwos", "poca_SoccerTwos.yaml", None, (), 900, "elo"),
+    Case(
+        "StrikersVsGoalie-POCA",
+        "StrikersVsGoalie",
+        "poca_StrikersVsGoalie.yaml",
+        None,
+        (),
+        900,
+        "elo",
+        "Striker",
     ),
 )
 
@@ -105,9 +121,11 @@ class Run:
         """(seconds, step) of the first summary at or above ``level``."""
         return next(((t, s) for t, s, r in self.summaries if r >= level), None)
 
-    def report(self, targets: tuple[float, ...]) -> dict:
+    def report(self, targets: tuple[float | None, ...]) -> dict:
         levels = {}
         for level in targets:
+            if level is None:
+                continue
             hit = self.reached(level)
             levels[str(level)] = None if hit is None else {"s": round(hit[0], 1), "step": hit[1]}
         return {
@@ -141,8 +159,9 @@ def run_command(
     case: Case,
     stop_signal: signal.Signals,
     log: Path,
+    stop_at: float | None,
 ) -> None:
-    """Run until every target level is reached (or the cap), reading summary lines live."""
+    """Run until ``stop_at`` is reached (None: to the cap), reading summary lines live."""
     tag = uuid.uuid4().hex
     run.log = log
     started = run.launched_at = time.time()
@@ -165,14 +184,16 @@ def run_command(
                 if (mark := MARK.search(line)) and run.first_step_s is None:
                     run.first_step_s = round(float(mark.group(1)) - started, 2)
                 if match := SUMMARY.search(line):
+                    if case.behavior is not None and match.group(1) != case.behavior:
+                        continue
                     reward = float(match.group(3))
-                    if case.group:
-                        group = GROUP.search(line)
-                        if group is None:
+                    if case.measure in MEASURES:
+                        measure = MEASURES[case.measure].search(line)
+                        if measure is None:
                             continue
-                        reward = float(group.group(1))
+                        reward = float(measure.group(1))
                     run.summaries.append((now, int(match.group(2)), reward))
-                    if run.reached(case.targets[-1]) is not None:
+                    if stop_at is not None and run.reached(stop_at) is not None:
                         done.set()
         done.set()
 
@@ -216,11 +237,13 @@ def anchor_run(case: Case, seed: int, build: Path, anchor: Path, work: Path, por
     ]
     env = {"PYTHONPATH": str(anchor / "shim"), "MLBENCH_MARKS": "1"}
     log = work / f"ml-{case.name}-{seed}.log"
-    run_command(command, env, run, case, signal.SIGTERM, log)
+    run_command(command, env, run, case, signal.SIGTERM, log, levels(case, None)[-1])
     return run
 
 
-def our_run(case: Case, seed: int, build: Path, config: Path, variant: str, work: Path) -> Run:
+def our_run(
+    case: Case, seed: int, build: Path, config: Path, variant: str, work: Path, stop_at: float
+) -> Run:
     run = Run(variant, seed)
     run_id = f"ours-{case.name}-{'ml' if variant == OURS_MLAGENTS else 'shipped'}-{seed}"
     command = [
@@ -243,7 +266,7 @@ def our_run(case: Case, seed: int, build: Path, config: Path, variant: str, work
         "--max-seconds",
         str(case.cap_s + 30),
     ]
-    run_command(command, {}, run, case, signal.SIGINT, work / f"{run_id}.log")
+    run_command(command, {}, run, case, signal.SIGINT, work / f"{run_id}.log", stop_at)
     summary = work / "ours" / run_id / "summary.json"
     if summary.is_file():  # the moment its first worker's Unity answered
         first_step = json.loads(summary.read_text()).get("startup", {}).get("first_step_at")
@@ -266,6 +289,14 @@ def ratio(ours: Run, anchor: Run, level: float, index: int) -> float | None:
     return None if mine is None or theirs is None else round(mine[index] / theirs[index], 2)
 
 
+def levels(case: Case, anchor: Run | None) -> tuple[float, ...] | tuple[None]:
+    """The levels a round measures: the case's targets, or the level mlagents-learn's run
+    ended at (its last summary; None before it ran, or when it printed none)."""
+    if case.targets:
+        return case.targets
+    return (anchor.summaries[-1][2] if anchor is not None and anchor.summaries else None,)
+
+
 def print_round(case: Case, runs: list[Run]) -> None:
     anchor = runs[0]
     for run in runs:
@@ -277,7 +308,10 @@ def print_round(case: Case, runs: list[Run]) -> None:
                 sep="\n  ",
             )
         cells = []
-        for level in case.targets:
+        for level in levels(case, anchor):
+            if level is None:
+                cells.append("mlagents-learn reached no summary")
+                continue
             hit = run.reached(level)
             text = "not reached" if hit is None else f"{hit[1]:,} steps, {hit[0]:.0f} s"
             if run is not anchor:
@@ -293,16 +327,18 @@ def print_round(case: Case, runs: list[Run]) -> None:
 
 
 def medians(case: Case, rounds: list[list[Run]]) -> dict:
-    """Per variant and level: median steps and seconds, and median ratios to the anchor."""
+    """Per variant and level (the anchor's end level: its own in each round): median steps
+    and seconds, and median ratios to the anchor."""
     out: dict = {}
     for column in range(1, len(rounds[0])):
         variant = rounds[0][column].variant
         per_level = {}
-        for level in case.targets:
-            steps = [r[column].reached(level) for r in rounds]
-            step_ratios = [x for r in rounds if (x := ratio(r[column], r[0], level, 1))]
-            time_ratios = [x for r in rounds if (x := ratio(r[column], r[0], level, 0))]
-            per_level[str(level)] = {
+        for index, name in enumerate(map(str, case.targets or ("mlagents-learn's end",))):
+            at = [(r, level) for r in rounds if (level := levels(case, r[0])[index]) is not None]
+            steps = [r[column].reached(level) for r, level in at]
+            step_ratios = [x for r, level in at if (x := ratio(r[column], r[0], level, 1))]
+            time_ratios = [x for r, level in at if (x := ratio(r[column], r[0], level, 0))]
+            per_level[name] = {
                 "reached": sum(hit is not None for hit in steps),
                 "rounds": len(rounds),
                 "median_step_ratio": statistics.median(step_ratios) if step_ratios else None,
@@ -358,14 +394,15 @@ def main() -> int:
                     (OURS_SHIPPED, ROOT / "config" / shipped if shipped else None),
                 ):
                     if variant not in args.skip and config is not None:
-                        runs.append(our_run(case, seed, build, config, variant, work))
+                        stop_at = levels(case, runs[0])[-1]
+                        runs.append(our_run(case, seed, build, config, variant, work, stop_at))
                 print_round(case, runs)
                 rounds.append(runs)
             report["cases"].append(
                 {
                     "case": case.name,
                     "targets": case.targets,
-                    "runs": [run.report(case.targets) for runs in rounds for run in runs],
+                    "runs": [run.report(levels(case, runs[0])) for runs in rounds for run in runs],
                     "medians": medians(case, rounds),
                 }
             )

@@ -26,14 +26,18 @@ def all_done(steps: Mapping[str, int], config: RunConfig, max_steps: int | None)
     return steps_left(steps, config, max_steps) == 0
 
 
+def budget(behavior: str, config: RunConfig, max_steps: int | None) -> int:
+    """A behavior's steps: ``max_steps`` (the CLI's ``--max-steps``), else its config's."""
+    return max_steps or config.for_behavior(behavior).max_steps
+
+
 def steps_left(steps: Mapping[str, int], config: RunConfig, max_steps: int | None) -> int | None:
     """Steps until every behavior seen has its steps (0: the run has them; None: none seen),
     what a learner asks for at most, so the run stops near its ``max_steps``."""
     if not steps:
         return None
     return max(
-        max((max_steps or config.for_behavior(behavior).max_steps) - count, 0)
-        for behavior, count in steps.items()
+        max(budget(behavior, config, max_steps) - count, 0) for behavior, count in steps.items()
     )
 
 

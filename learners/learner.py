@@ -24,15 +24,14 @@ from collections.abc import Collection
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
-import numpy as np
 import torch
 
 from batches import keys
-from batches.contracts import base_name
+from batches.contracts import Weights, base_name
 from batches.segment import Segment
 from batches.specs import spec_from_dict
 from learners import checkpoint
-from learners.counters import LearnerStats, Sources, all_done, demand
+from learners.counters import LearnerStats, Sources, all_done, budget, demand
 from learners.devices import Compute, to_cpu
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
@@ -105,7 +104,7 @@ class CentralLearner:
         self.stats = LearnerStats()
         self._sources = Sources()
         self._reports: list[tuple[str, int, dict[str, float]]] = []
-        self._published: tuple[int, dict[str, dict[str, np.ndarray]]] | None = None
+        self._published: tuple[int, Weights] | None = None
         self.self_play = SelfPlay(seed)
         self._keys: dict[str, str] = {}  # behavior id -> its state's key (self-play: shared)
 
@@ -136,7 +135,7 @@ class CentralLearner:
                 self._learn(key, state, segment)
             if state.settings.self_play is not None:
                 current = lambda s=state: numpy_state(s.network)  # noqa: E731
-                finished = state.steps >= (self.max_steps or state.settings.max_steps)
+                finished = state.steps >= budget(key, self.config, self.max_steps)
                 brain, version = base_name(key), self.version + 1
                 if self.self_play.advance(brain, state.steps, version, current, finished):
                     self.version += 1
@@ -186,7 +185,7 @@ class CentralLearner:
         wants = [w for s in self.behaviors.values() if (w := s.algorithm.wanted()) is not None]
         return demand(steps, self.config, self.max_steps, wants, self.inference)
 
-    def weights(self) -> tuple[int, dict[str, dict[str, np.ndarray]]]:
+    def weights(self) -> tuple[int, Weights]:
         """Numpy weights (a worker loads them without importing torch), copied off the
         device once per version and behavior set, however many workers ask."""
         names = tuple(self._keys)
@@ -196,7 +195,7 @@ class CentralLearner:
             or (tuple(self._published[1]) != names)
         ):
             current = {key: numpy_state(s.network) for key, s in self.behaviors.items()}
-            states = {}
+            states: Weights = {}
             for behavior, key in self._keys.items():
                 states[behavior] = current[key]
                 if self.behaviors[key].settings.self_play is not None:

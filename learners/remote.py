@@ -21,6 +21,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 from batches import keys
+from batches.contracts import Snapshot, Weights
 from batches.segment import Segment
 from learners.counters import LearnerStats, Sources, all_done, demand, on_policy_wanted
 from learners.trainers import trainer
@@ -202,6 +203,25 @@ def learner_actor(
     class RayLearner(LearnerHost):
         progress = ray.method(concurrency_group="status")(LearnerHost.progress)
         drain_reports = ray.method(concurrency_group="status")(LearnerHost.drain_reports)
+
+        def __init__(self, *args: Any) -> None:
+            super().__init__(*args)
+            self._snapshot_refs: dict[str, ray.ObjectRef] = {}
+
+        def weights(self) -> tuple[int, Weights]:
+            """Each snapshot put once: the weights carry its reference, which a worker
+            resolves only if it lacks the snapshot's key."""
+            with self._lock:
+                version, weights = self.learner.weights()
+                live = self.learner.self_play.snapshot_keys()  # a window's may come back
+            out = dict(weights)
+            for behavior, value in weights.items():
+                if isinstance(value, Snapshot):
+                    if value.key not in self._snapshot_refs:
+                        self._snapshot_refs[value.key] = ray.put(value.state)
+                    out[behavior] = Snapshot(value.key, self._snapshot_refs[value.key])
+            self._snapshot_refs = {k: r for k, r in self._snapshot_refs.items() if k in live}
+            return version, out
 
     remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
     remote = remote.options(num_cpus=num_cpus, num_gpus=0 if device == "cpu" else 1)

@@ -14,7 +14,9 @@ the central learner, so that every worker plays by the same rules.
 - **Versions**: each team change or swap is a new weights version, and the learner keeps
   which team learned from which version on. A step counts as the learning team's only if
   the weights that acted were the learning policy's: whatever the lag of a worker, or
-  when it joined, its steps are classified by the version it acted with.
+  when it joined, its steps are classified by the version it acted with. An opponent
+  travels as a ``Snapshot`` under a key of its own: a worker fetches it once, not with
+  every version of the learning policy.
 - **ELO**: from the learning team's agents whose episode ended with their whole group,
   not interrupted, on any worker: the last step's reward plus group reward gives a win
   (> 0), a loss (< 0) or a draw; the current ELO moves by ``result - expected`` and the
@@ -24,6 +26,7 @@ the central learner, so that every worker plays by the same rules.
 from __future__ import annotations
 
 import re
+import uuid
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,6 +36,7 @@ import numpy as np
 import torch
 
 from batches import keys
+from batches.contracts import Snapshot
 from batches.specs import spec_from_dict
 
 if TYPE_CHECKING:
@@ -55,7 +59,9 @@ class Ghost:
 
     settings: SelfPlaySettings
     opponent_state: State  # what the brain's teams that do not learn act with
+    opponent_key: str = ""  # names that state for good (workers load it once)
     snapshots: list[State] = field(default_factory=list)
+    snapshot_keys: list[str] = field(default_factory=list)
     elos: list[float] = field(default_factory=list)  # window + 1; the last: the learning one
     slot: int = 0  # the ring's next slot
     opponent: int = -1  # the snapshot the other teams play (-1: a copy of the current)
@@ -70,10 +76,12 @@ class Ghost:
         return self.elos[-1]
 
     def save(self, current: State) -> None:
+        key = uuid.uuid4().hex  # unique across learner restarts: workers cache by it
         if self.slot < len(self.snapshots):
-            self.snapshots[self.slot] = current
+            self.snapshots[self.slot], self.snapshot_keys[self.slot] = current, key
         else:
             self.snapshots.append(current)
+            self.snapshot_keys.append(key)
         self.elos[self.slot] = self.elo
         self.slot = (self.slot + 1) % self.settings.window
 
@@ -81,8 +89,10 @@ class Ghost:
         if rng.uniform() < 1 - self.settings.play_against_latest_model_ratio:
             self.opponent = int(rng.integers(len(self.snapshots)))
             self.opponent_state = self.snapshots[self.opponent]
+            self.opponent_key = self.snapshot_keys[self.opponent]
         else:
             self.opponent, self.opponent_state = -1, current
+            self.opponent_key = uuid.uuid4().hex
 
 
 class SelfPlay:
@@ -103,6 +113,7 @@ class SelfPlay:
             window = settings.window
             ghost = Ghost(settings, current, elos=[settings.initial_elo] * (window + 1))
             ghost.save(current)
+            ghost.opponent_key = ghost.snapshot_keys[0]
             self.ghosts[brain] = ghost
         if team not in self.team_ghost:
             self.team_ghost[team] = brain
@@ -115,6 +126,10 @@ class SelfPlay:
         if ghost.learning_team < 0:
             ghost.learning_team = self.learning_team
 
+    def snapshot_keys(self) -> set[str]:
+        """The keys of every state an opponent may act with (the windows, the opponents)."""
+        return {k for g in self.ghosts.values() for k in (*g.snapshot_keys, g.opponent_key)}
+
     def learning(self, team: int, versions: torch.Tensor) -> torch.Tensor:
         """Per step: whether ``team`` learned at the version that acted."""
         starts = torch.tensor([v for v, _ in self.changes], dtype=torch.int64)
@@ -122,8 +137,13 @@ class SelfPlay:
         at = torch.searchsorted(starts, versions.cpu().contiguous(), right=True) - 1
         return (teams[at.clamp(min=0)] == team).to(versions.device)
 
-    def weights_of(self, brain: str, team: int, current: State) -> State:
-        return current if team == self.learning_team else self.ghosts[brain].opponent_state
+    def weights_of(self, brain: str, team: int, current: State) -> State | Snapshot:
+        """The learning team acts with ``current``; the others with their opponent, a
+        :class:`Snapshot` that each worker loads once."""
+        if team == self.learning_team:
+            return current
+        ghost = self.ghosts[brain]
+        return Snapshot(ghost.opponent_key, ghost.opponent_state)
 
     def record_games(self, brain: str, segment: TensorDict, learning: torch.Tensor) -> None:
         """ELO from the learning team's agents whose game ended (with their group, not
@@ -229,6 +249,8 @@ class SelfPlay:
             fields = dict(fields)
             fields["opponent_state"] = arrays(fields["opponent_state"])
             fields["snapshots"] = [arrays(s) for s in fields["snapshots"]]
+            fields.setdefault("opponent_key", uuid.uuid4().hex)  # a file from before keys
+            fields.setdefault("snapshot_keys", [uuid.uuid4().hex for _ in fields["snapshots"]])
             self.ghosts[brain] = Ghost(settings=settings[brain], **fields)
 
 

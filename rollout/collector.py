@@ -18,6 +18,7 @@ import dataclasses
 import logging
 import time
 import uuid
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,7 +26,7 @@ import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
 from batches import specs
-from batches.contracts import Actor, ActorFactory, Weights
+from batches.contracts import Actor, ActorFactory, Snapshot, Weights
 from batches.parameters import Values
 from batches.segment import Segment
 from rollout.horizons import Horizons
@@ -42,6 +43,7 @@ from rollout.unity import (
 
 log = logging.getLogger(__name__)
 NO_AGENT_STEPS = 3000  # environment steps without any agent before a run gives up on a build
+SNAPSHOTS_KEPT = 16  # fixed policies (self-play opponents) kept: a window's come back
 
 
 @dataclass
@@ -70,6 +72,7 @@ class CollectorMetrics:
     first_step_at: float | None = None  # wall clock (time.time) of Unity's first answer
     incarnation: str = ""  # this worker process's id: a restarted worker starts anew
     specs: dict[str, dict] = field(default_factory=dict)  # behaviors met: spec_to_dict
+    snapshots_received: int = 0  # fixed policies taken in (each key once while kept)
 
 
 class Collector:
@@ -89,6 +92,8 @@ class Collector:
         self.actors: dict[str, Actor] = {}
         self.weights: Weights = {}
         self.version = 0
+        self._snapshots: OrderedDict[str, Any] = OrderedDict()  # key -> state, oldest first
+        self._loaded: dict[str, str] = {}  # behavior -> the snapshot key its actor holds
         self.metrics = CollectorMetrics(incarnation=uuid.uuid4().hex)
         self._collects = 0  # numbers this incarnation's segments (Segment.source)
         self._started = False
@@ -123,9 +128,31 @@ class Collector:
             return
         self.version, self.weights = version, weights
         for behavior, actor in self.actors.items():
-            if behavior in weights:
-                actor.load_state_dict(weights[behavior])
+            self._load(behavior, actor)
         self.metrics.policy_version = version
+
+    def holds(self, key: str) -> bool:
+        """Whether the snapshot ``key`` is here (its state need not travel again)."""
+        return key in self._snapshots
+
+    def _load(self, behavior: str, actor: Actor) -> None:
+        value = self.weights.get(behavior)
+        if value is None:
+            return
+        if not isinstance(value, Snapshot):
+            actor.load_state_dict(value)
+            self._loaded.pop(behavior, None)
+            return
+        state = self._snapshots.pop(value.key, None)
+        if state is None:
+            state = value.state
+            self.metrics.snapshots_received += 1
+        self._snapshots[value.key] = state  # the newest used last
+        while len(self._snapshots) > SNAPSHOTS_KEPT:
+            self._snapshots.popitem(last=False)
+        if self._loaded.get(behavior) != value.key:  # the same opponent: nothing to load
+            actor.load_state_dict(state)
+            self._loaded[behavior] = value.key
 
     # --- collection ---------------------------------------------------------------------
 
@@ -207,8 +234,7 @@ class Collector:
         self.builders[behavior] = builder
         self.metrics.specs[behavior] = specs.spec_to_dict(spec)
         actor = self.actor_factory(behavior, spec)
-        if behavior in self.weights:
-            actor.load_state_dict(self.weights[behavior])
+        self._load(behavior, actor)
         self.actors[behavior] = actor
         self.metrics.behaviors[behavior] = BehaviorStats()
         return builder

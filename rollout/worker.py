@@ -2,25 +2,30 @@
 
 It owns exactly one Unity instance (one CPU by default, one torch thread). The service
 calls ``collect(version, weights)``: weights arrive as an ObjectRef resolved by Ray, only
-when a newer version exists; segments go back as the call's result, an ObjectRef the
+when a newer version exists (a self-play opponent's snapshot inside them as a reference
+of its own, fetched once); segments go back as the call's result, an ObjectRef the
 service hands to the learner without touching the data.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import sys
 
 import ray
+from ray.exceptions import RayError
 
-from batches.contracts import ActorFactory, Weights
+from batches.contracts import ActorFactory, Snapshot, Weights
 from batches.parameters import Assignment, Values, reseeded
 from rollout.collector import Collector, CollectorMetrics
 from rollout.horizons import Horizons
 from rollout.ledger import Collected
 from rollout.ports import PortAllocator, PortRange
 from rollout.unity import UnityConfig
+
+log = logging.getLogger(__name__)
 
 
 class WeightsLost(RuntimeError):
@@ -79,9 +84,25 @@ class RolloutWorker:
             self.collector.set_parameters(self._seeded(parameters.values), parameters.reset)
         if published is None and self.collector.version < version:
             raise WeightsLost(f"worker has version {self.collector.version}, sent {version}")
-        if published is not None:
-            self.collector.load_weights(*published)
+        if published is not None and published[0] > self.collector.version:
+            self.collector.load_weights(published[0], self._resolved(published[1]))
         return self.collector.collect(min_steps, max_seconds)
+
+    def _resolved(self, weights: Weights) -> Weights:
+        """Snapshots travel by reference: fetched here only when the collector lacks them.
+        One whose learner died keeps the behavior on the policy it had (an opponent: its
+        steps train nothing) until the restored learner's weights come."""
+        out = dict(weights)
+        for behavior, value in weights.items():
+            if not isinstance(value, Snapshot) or self.collector.holds(value.key):
+                continue
+            if isinstance(value.state, ray.ObjectRef):
+                try:
+                    out[behavior] = Snapshot(value.key, ray.get(value.state))
+                except RayError as error:
+                    log.warning("%s: snapshot lost (%s); acting on with the last", behavior, error)
+                    del out[behavior]
+        return out
 
     def _seeded(self, values: Values) -> Values:
         """A sampler stream per worker (mlagents-learn gives every environment the same)."""

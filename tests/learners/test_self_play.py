@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from batches import keys
+from batches.contracts import Snapshot
 from learners.config import ConfigError, parse_config
 from learners.learner import CentralLearner
 from learners.self_play import learning_steps
@@ -77,7 +78,10 @@ def test_both_teams_share_one_brain_and_only_the_learning_team_trains():
     assert state.updates and version >= state.updates[-1]
     current = {k: v.detach().numpy() for k, v in state.network.state_dict().items()}
     assert same(weights["Soccer?team=0"], current)
-    assert not same(weights["Soccer?team=1"], current)  # the initial policy: a snapshot
+    opponent = weights["Soccer?team=1"]  # the initial policy: a snapshot, under its key
+    assert isinstance(opponent, Snapshot) and not same(opponent.state, current)
+    assert opponent.key == learner.self_play.ghosts["Soccer"].snapshot_keys[0]
+    assert opponent.key in learner.self_play.snapshot_keys()
 
 
 def test_team_changes_and_swaps_are_versions_and_steps_count_by_the_version_that_acted():
