@@ -25,32 +25,19 @@ import argparse
 import dataclasses
 import json
 import os
-import re
 import signal
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
-import time
-import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-import psutil
 from machine import machine  # benchmarks/machine.py
+from trainer_runs import Run, run_command
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
-SUMMARY = re.compile(
-    r"(\S+)\. Step: (\d+)\. Time Elapsed: [\d.]+ s\. Mean Reward: (-?\d+(?:\.\d+)?)"
-)
-MEASURES = {  # what a summary line adds, as both trainers print it
-    "group": re.compile(r"Mean Group Reward: (-?\d+(?:\.\d+)?)"),  # POCA
-    "elo": re.compile(r"ELO: (-?\d+(?:\.\d+)?)"),  # self-play
-}
-MARK = re.compile(r"\[mlbench-mark\] reset_env_done ([\d.]+)")
-TAG = "UNITY_ROLLOUT_BENCH_RUN"
 # the variants of a round: mlagents-learn and ours with ML-Agents' config, ours with ours
 ANCHOR, OURS_MLAGENTS, OURS_SHIPPED = (
     "mlagents-learn",
@@ -105,118 +92,6 @@ CASES = (
 )
 
 
-@dataclass
-class Run:
-    variant: str
-    seed: int
-    summaries: list[tuple[float, int, float]] = field(default_factory=list)  # (s, step, reward)
-    first_step_s: float | None = None
-    launched_at: float = 0.0  # wall clock of the launch; every figure counts from it
-    exit_code: int | None = None
-    wall_s: float = 0.0
-    leftovers: int = 0
-    log: Path | None = None
-
-    def reached(self, level: float) -> tuple[float, int] | None:
-        """(seconds, step) of the first summary at or above ``level``."""
-        return next(((t, s) for t, s, r in self.summaries if r >= level), None)
-
-    def report(self, targets: tuple[float | None, ...]) -> dict:
-        levels = {}
-        for level in targets:
-            if level is None:
-                continue
-            hit = self.reached(level)
-            levels[str(level)] = None if hit is None else {"s": round(hit[0], 1), "step": hit[1]}
-        return {
-            "variant": self.variant,
-            "seed": self.seed,
-            "targets": levels,
-            "first_step_s": self.first_step_s,
-            "first_summary_s": round(self.summaries[0][0], 1) if self.summaries else None,
-            "best_reward": max((r for _, _, r in self.summaries), default=None),
-            "exit_code": self.exit_code,
-            "wall_s": round(self.wall_s, 1),
-            "leftover_processes": self.leftovers,
-        }
-
-
-def tagged(tag: str) -> list[psutil.Process]:
-    found = []
-    for process in psutil.process_iter():
-        try:
-            if process.environ().get(TAG) == tag:
-                found.append(process)
-        except (psutil.NoSuchProcess, psutil.AccessDenied, ProcessLookupError):
-            continue
-    return found
-
-
-def run_command(
-    command: list[str],
-    env: dict[str, str],
-    run: Run,
-    case: Case,
-    stop_signal: signal.Signals,
-    log: Path,
-    stop_at: float | None,
-) -> None:
-    """Run until ``stop_at`` is reached (None: to the cap), reading summary lines live."""
-    tag = uuid.uuid4().hex
-    run.log = log
-    started = run.launched_at = time.time()
-    process = subprocess.Popen(
-        command,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-        env={**os.environ, **env, TAG: tag, "PYTHONUNBUFFERED": "1"},
-    )
-    done = threading.Event()
-
-    def read() -> None:
-        assert process.stdout is not None
-        with log.open("w") as out:
-            for line in process.stdout:
-                now = time.time() - started
-                out.write(f"[+{now:8.3f}s] {line}")
-                if (mark := MARK.search(line)) and run.first_step_s is None:
-                    run.first_step_s = round(float(mark.group(1)) - started, 2)
-                if match := SUMMARY.search(line):
-                    if case.behavior is not None and match.group(1) != case.behavior:
-                        continue
-                    reward = float(match.group(3))
-                    if case.measure in MEASURES:
-                        measure = MEASURES[case.measure].search(line)
-                        if measure is None:
-                            continue
-                        reward = float(measure.group(1))
-                    run.summaries.append((now, int(match.group(2)), reward))
-                    if stop_at is not None and run.reached(stop_at) is not None:
-                        done.set()
-        done.set()
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
-    try:
-        done.wait(case.cap_s)
-    finally:  # also on Ctrl-C: the run is in its own session, so stop it here
-        if process.poll() is None:
-            os.killpg(process.pid, stop_signal)  # graceful: the trainer stops its players
-            try:
-                process.wait(60)
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                process.wait()
-        reader.join(10)
-        run.exit_code, run.wall_s = process.returncode, time.time() - started
-        left = tagged(tag)
-        run.leftovers = len(left)
-        for leftover in left:
-            leftover.kill()
-
-
 def anchor_run(case: Case, seed: int, build: Path, anchor: Path, work: Path, port: int) -> Run:
     run = Run(ANCHOR, seed)
     command = [
@@ -237,7 +112,8 @@ def anchor_run(case: Case, seed: int, build: Path, anchor: Path, work: Path, por
     ]
     env = {"PYTHONPATH": str(anchor / "shim"), "MLBENCH_MARKS": "1"}
     log = work / f"ml-{case.name}-{seed}.log"
-    run_command(command, env, run, case, signal.SIGTERM, log, levels(case, None)[-1])
+    stop_at = levels(case, None)[-1]
+    run_command(command, env, run, signal.SIGTERM, log, stop_at, *reading(case))
     return run
 
 
@@ -266,13 +142,18 @@ def our_run(
         "--max-seconds",
         str(case.cap_s + 30),
     ]
-    run_command(command, {}, run, case, signal.SIGINT, work / f"{run_id}.log", stop_at)
+    log = work / f"{run_id}.log"
+    run_command(command, {}, run, signal.SIGINT, log, stop_at, *reading(case))
     summary = work / "ours" / run_id / "summary.json"
     if summary.is_file():  # the moment its first worker's Unity answered
         first_step = json.loads(summary.read_text()).get("startup", {}).get("first_step_at")
         if first_step is not None:
             run.first_step_s = round(first_step - run.launched_at, 2)
     return run
+
+
+def reading(case: Case) -> tuple[float, str, str | None]:
+    return case.cap_s, case.measure, case.behavior
 
 
 def build_player(env: str, work: Path) -> Path:
