@@ -10,10 +10,12 @@ Tags (docs/training.md lists them all): ``Environment/Cumulative Reward`` and
 second collected, samples per second consumed by the learner), and Unity's custom
 statistics (``StatsRecorder``) under their own names in every behavior's folder, as
 mlagents-learn writes them (``rollout.service_metrics.Stat``; histograms also as
-``<name>_hist``). One writer per behavior,
-in ``<run dir>/<behavior>/``, as ML-Agents lays them out, so TensorBoard shows one run per
-behavior. Without the live display (``--no-progress``, or output that is not a terminal)
-each summary is also one line on the console, in mlagents-learn's words.
+``<name>_hist``). One writer per behavior, in ``<run dir>/<name>/``, and summary lines
+``<name>. Step: ...``, named as mlagents-learn names its trainers: the behavior without
+its team (``3DBall``, a self-play brain ``SoccerTwos``), so TensorBoard shows one run per
+behavior under the same names. Without the live display (``--no-progress``, or output
+that is not a terminal) each summary is also one line on the console, in mlagents-learn's
+words.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from tensorboard.compat.proto.event_pb2 import Event
 from tensorboard.compat.proto.summary_pb2 import HistogramProto, Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
+from batches.contracts import base_name
 from rollout.service_metrics import ServiceMetrics, Stat, merge_stats
 
 _RATE_TAGS = {
@@ -113,6 +116,7 @@ class Summaries:
         # first look at the learner comes (a short or fast run may be past it by then)
         self.start_steps = dict(start_steps or {})
         self.writers: dict[str, ScalarWriter] = {}
+        self.names: dict[str, str] = {}  # behavior -> its name on the console and in TensorBoard
         self.windows: dict[str, _Window] = {}
         self.console = console or Console()
         self.live = Live(console=self.console, auto_refresh=False) if progress else None
@@ -173,6 +177,14 @@ class Summaries:
             self.console.print(f"faults: {_faults_text(faults)}", soft_wrap=True, highlight=False)
             self._faults = faults
 
+    def name(self, behavior: str) -> str:
+        """The behavior without its team, as mlagents-learn names a trainer; a second
+        behavior of that name (its teams trained apart) keeps its team."""
+        if behavior not in self.names:
+            base = base_name(behavior)
+            self.names[behavior] = behavior if base in self.names.values() else base
+        return self.names[behavior]
+
     def _window(self, behavior: str, step: int) -> _Window:
         if behavior not in self.windows:
             start = min(step, self.start_steps.get(behavior, 0))
@@ -192,7 +204,7 @@ class Summaries:
         writer = self.writers.get(behavior)
         if writer is None:
             writer = self.writers[behavior] = ScalarWriter(
-                str(self.run_dir / behavior_folder(behavior))
+                str(self.run_dir / behavior_folder(self.name(behavior)))
             )
         episodes, return_sum, length_sum = totals or (window.episodes, 0.0, 0)
         new = episodes - window.episodes
@@ -213,7 +225,7 @@ class Summaries:
         if self.live is None:
             elapsed = time.perf_counter() - self.started
             self.console.print(
-                f"{behavior}. Step: {step}. Time Elapsed: {elapsed:.1f} s. {line}",
+                f"{self.name(behavior)}. Step: {step}. Time Elapsed: {elapsed:.1f} s. {line}",
                 soft_wrap=True,
                 highlight=False,
             )

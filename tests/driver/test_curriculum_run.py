@@ -76,7 +76,7 @@ def test_walljumps_curriculum_moves_both_walls_through_every_lesson(ray_session,
         assert smalls == sorted(smalls), "lessons only go up"
     state = checkpoint.load(result.checkpoint)
     assert state["meta"]["lessons"] == {"big_wall_height": 3, "small_wall_height": 3}
-    seen = lesson_numbers(result.run_dir, "SmallWallJump_team0")
+    seen = lesson_numbers(result.run_dir, "SmallWallJump")
     assert set(seen) == {"big_wall_height", "small_wall_height"}
     assert seen["small_wall_height"] == sorted(seen["small_wall_height"])  # lessons only go up
 

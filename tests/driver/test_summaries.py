@@ -54,7 +54,7 @@ def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
     with Summaries(tmp_path, lambda b: 100, progress=False, console=console) as summaries:
         progress = {"steps": {"A?team=0": 150}, "version": 0, "stats": LearnerStats()}
         summaries.observe(ServiceMetrics(), progress, [])
-    assert "A?team=0. Step: 150. Time Elapsed: " in out.getvalue()
+    assert "A. Step: 150. Time Elapsed: " in out.getvalue()  # named as mlagents-learn names it
     assert "No episode was completed since last summary." in out.getvalue()
 
 
@@ -93,9 +93,25 @@ def test_custom_stats_reach_every_behaviors_tensorboard(tmp_path):
             metrics.unity_stats.setdefault("Spread", Stat(Method.HISTOGRAM)).add(goals)
             steps = {"Striker?team=0": step, "Goalie?team=1": step}
             summaries.observe(metrics, {"steps": steps, "version": 0, "stats": LearnerStats()}, [])
-    for folder in ("Striker_team0", "Goalie_team1"):
+    for folder in ("Striker", "Goalie"):  # without their teams, as mlagents-learn writes them
         events = EventAccumulator(str(tmp_path / folder), size_guidance={"histograms": 0})
         events.Reload()
         goals = [(e.step, e.value) for e in events.Scalars("Environment/Goals")]
         assert goals == [(120, 3.0), (240, 12.0)]  # summed over each summary period
         assert [h.step for h in events.Histograms("Spread_hist")] == [120, 240]
+
+
+def test_behaviors_are_named_without_their_team_unless_two_teams_train_apart(tmp_path):
+    """mlagents-learn names a trainer, its console lines and its TensorBoard folder after
+    the behavior without ``?team=``; two teams trained apart (no self-play) need two."""
+    out = io.StringIO()
+    console = Console(file=out, width=200)
+    steps = {"Soccer?team=1": 100, "Soccer?team=0": 100, "Walker?team=0": 100}
+    with Summaries(tmp_path, lambda b: 100, progress=False, console=console) as summaries:
+        summaries.observe(
+            ServiceMetrics(), {"steps": steps, "version": 0, "stats": LearnerStats()}, []
+        )
+    lines = [line.split(".")[0] for line in out.getvalue().splitlines() if "Step: 100" in line]
+    assert lines == ["Soccer", "Soccer?team=0", "Walker"]
+    folders = sorted(p.name for p in tmp_path.iterdir() if p.is_dir())
+    assert folders == ["Soccer", "Soccer_team0", "Walker"]

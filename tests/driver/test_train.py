@@ -53,7 +53,7 @@ def test_a_short_run_beats_the_random_policy(trained):
     assert {r: n for r, n in ledger["dropped"].items() if n} == {
         "shutdown": ledger["produced"] - ledger["delivered"]
     }
-    events = list((result.run_dir / "3DBall_team0").glob("events.out.tfevents.*"))
+    events = list((result.run_dir / "3DBall").glob("events.out.tfevents.*"))
     assert events, "TensorBoard events per behavior"
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -118,7 +118,7 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
     try:
         run_dir = Path(tmp_path) / "run"
         deadline = time.monotonic() + 120
-        while not list((run_dir / "3DBall_team0").glob("events.*")):  # training has begun
+        while not list((run_dir / "3DBall").glob("events.*")):  # training has begun
             assert driver.poll() is None, driver.stdout.read() if driver.stdout else ""
             assert time.monotonic() < deadline, "training did not start"
             time.sleep(0.5)
