@@ -87,7 +87,7 @@ CASES = (
         (),
         900,
         "elo",
-        "Striker",
+        "Goalie",  # the side that learns first, in both trainers
     ),
 )
 
