@@ -69,7 +69,8 @@ def read_demos(
 
 def read_demo(path: str | os.PathLike[str], expected: BehaviorSpec | None = None) -> Demonstration:
     """One file, or a directory's files as one demonstration (as ML-Agents trains on them):
-    their steps in name order, their summaries added up under the directory's name.
+    their steps in name order, their summaries added up under the directory's name (a
+    directory of one file reads as that file).
 
     ``expected`` is the spec the caller's policy has: actions and sensor shapes must match
     it (what ML-Agents' ``demo_to_buffer`` checks). In a directory every file must match the
@@ -127,8 +128,11 @@ def write_demo(path: str | os.PathLike[str], demo: Demonstration, png: Iterable[
         out = bytearray(_varint(len(meta)) + meta)
         out.extend(bytes(META_AREA - len(out)))
         _append(out, protos.brain_parameters(demo.behavior_name, spec.action_spec))
-        for step in demo.steps:
-            _append(out, _pair_proto(step, spec, compressed))
+        for index, step in enumerate(demo.steps):
+            try:
+                _append(out, _pair_proto(step, spec, compressed))
+            except ValueError as error:
+                raise ValueError(f"step {index}: {error}") from None
         out.extend(meta)  # Unity's undelimited copy at the end (see the module docstring)
     except ValueError as error:
         raise DemoError(where, str(error)) from None

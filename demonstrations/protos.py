@@ -181,12 +181,14 @@ def _encode_pngs(array: np.ndarray) -> tuple[bytes, list[int]]:
         raise ValueError(
             f"only (channels, height, width) observations can be PNGs, not {chw.shape}"
         )
+    if not np.all((chw >= 0.0) & (chw <= 1.0)):
+        raise ValueError("a PNG sensor with values outside [0, 1], which 8-bit pixels cannot hold")
     channels = chw.shape[0]
     if channels == 1:
         chw = np.repeat(chw, 3, axis=0)  # a greyscale camera: the same value in R, G and B
     padded = -(-chw.shape[0] // 3) * 3
     chw = np.concatenate([chw, np.zeros((padded - chw.shape[0], *chw.shape[1:]), np.float32)])
-    pixels = np.rint(np.clip(chw, 0.0, 1.0) * 255.0).astype(np.uint8)
+    pixels = np.rint(chw * 255.0).astype(np.uint8)
     out = io.BytesIO()
     for first in range(0, padded, 3):
         Image.fromarray(np.ascontiguousarray(np.moveaxis(pixels[first : first + 3], 0, -1))).save(

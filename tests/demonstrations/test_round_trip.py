@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from demonstrations import DemoMeta, Demonstration, DemoStep, read_demo, write_demo
+from demonstrations import DemoError, DemoMeta, Demonstration, DemoStep, read_demo, write_demo
 from tests.demonstrations import samples
 
 
@@ -59,11 +59,18 @@ def test_png_observations_round_trip(tmp_path):
         assert dataclasses.replace(theirs, observations=ours.observations) == ours
 
 
-def test_png_is_only_for_images(tmp_path):
-    from demonstrations import DemoError
-
+def test_png_is_only_for_images_in_0_to_1(tmp_path):
     with pytest.raises(DemoError, match="sensors \\[0\\] cannot be PNGs"):
         write_demo(tmp_path / "a.demo", samples.demonstration(samples.DISCRETE), png=[0])
+    demo = samples.demonstration(samples.IMAGES, count=3, pixels=True)
+    bright = dataclasses.replace(
+        demo.steps[2],
+        observations=(demo.steps[2].observations[0] * 2, *demo.steps[2].observations[1:]),
+    )
+    with pytest.raises(DemoError, match="step 2: a PNG sensor with values outside"):
+        write_demo(
+            tmp_path / "a.demo", dataclasses.replace(demo, steps=(*demo.steps[:2], bright)), png=[0]
+        )
 
 
 def test_values_are_immutable():
