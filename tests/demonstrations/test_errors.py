@@ -25,14 +25,14 @@ def one_line_error(path, match: str = "") -> DemoError:
 
 @pytest.fixture
 def small(tmp_path):
-    """A small demo of 4 steps (2 episodes) and its bytes."""
+    """A small demo of 4 steps and its bytes."""
     path = tmp_path / "small.demo"
     write_demo(path, samples.demonstration(samples.DISCRETE, count=4))
     return path, path.read_bytes()
 
 
 def test_every_truncation_is_an_error_or_loses_only_the_trailing_copy(tmp_path, small):
-    _path, data = small
+    _, data = small
     trailer = len(data) - data[0]  # the undelimited metadata copy starts here
     for cut in range(len(data)):
         cut_path = tmp_path / "cut.demo"
