@@ -47,6 +47,7 @@ WORKDIR /opt/unity-rollout
 COPY pyproject.toml setup.py constraints.txt README.md ./
 COPY scripts/setup-venv.sh scripts/check-torch-index.py scripts/docker-entrypoint.sh scripts/
 COPY batches/ batches/
+COPY demonstrations/ demonstrations/
 COPY driver/ driver/
 COPY gymnasium_adapters/ gymnasium_adapters/
 COPY learners/ learners/

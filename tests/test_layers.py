@@ -15,6 +15,7 @@ ROOT = Path(__file__).resolve().parent.parent
 ALLOWED: dict[str, set[str]] = {
     "mlagents_compat": set(),  # the leaf that makes mlagents-envs import
     "batches": set(),  # the vocabulary and contracts both sides speak
+    "demonstrations": {"batches", "mlagents_compat"},  # ML-Agents .demo files
     "unitysim": {"mlagents_compat"},  # plays Unity: knows nothing of the trainer
     "learners": {"batches"},
     "rollout": {"batches", "mlagents_compat", "unitysim.launcher"},
