@@ -53,6 +53,7 @@ COPY gymnasium_adapters/ gymnasium_adapters/
 COPY learners/ learners/
 COPY mlagents_compat/ mlagents_compat/
 COPY rollout/ rollout/
+COPY torchrl_adapters/ torchrl_adapters/
 COPY unitysim/ unitysim/
 COPY config/ config/
 

@@ -335,6 +335,11 @@ class RolloutService(WorkerSupervision):
         self._version = int(ray.get(self._weights_ref)[0])
         self._wanted = ray.get(learner.submit.remote([]))[1]
 
+    def ask_learner(self) -> None:
+        """Have the learner state its version and demand now, not with the next delivery:
+        its demand may have grown with no data coming (a consumer took its batches)."""
+        self._submits.append(self.learner.submit.remote([]))
+
     @property
     def version(self) -> int:
         """The newest weights version the service has seen published."""

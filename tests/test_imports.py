@@ -22,6 +22,7 @@ PACKAGES = (
     "learners",
     "mlagents_compat",
     "rollout",
+    "torchrl_adapters",
     "unitysim",
 )
 
