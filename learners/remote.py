@@ -186,6 +186,7 @@ def learner_actor(
     config: RunConfig,
     max_steps: int | None = None,
     num_cpus: float = 0,
+    torch_threads: int | None = 1,
     seed: int = 0,
     device: str = "cpu",
     mixed_precision: bool = False,
@@ -225,4 +226,4 @@ def learner_actor(
 
     remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
     remote = remote.options(num_cpus=num_cpus, num_gpus=0 if device == "cpu" else 1)
-    return remote.remote(config, max_steps, 1, seed, device, mixed_precision, inference)
+    return remote.remote(config, max_steps, torch_threads, seed, device, mixed_precision, inference)

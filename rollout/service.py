@@ -278,11 +278,23 @@ class RolloutService(WorkerSupervision):
         back within ``timeout`` (at shutdown), instead of waiting for it."""
         if not self._submits:
             return
-        done, self._submits = ray.wait(
+        ready, _ = ray.wait(
             self._submits,
             num_returns=1 if block else len(self._submits),
             timeout=timeout if (block or lost) else 0,
         )
+        if ready:  # and every other answer already in
+            ready, _ = ray.wait(self._submits, num_returns=len(self._submits), timeout=0)
+        # The learner's newest answer is its state: answers taken in the order asked (not
+        # ray.wait's), none past one still out, so an older one never overwrites a newer.
+        arrived, done = set(ready), []
+        for ref in self._submits:
+            if ref not in arrived and not lost:
+                break
+            if ref in arrived:
+                done.append(ref)
+        taken = set(done)
+        self._submits = [ref for ref in self._submits if ref not in taken]
         try:
             answers = ray.get(done)
         except RayActorError as error:

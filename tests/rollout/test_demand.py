@@ -75,3 +75,37 @@ def test_no_worker_is_asked_for_less_than_a_row(horizon):
 
 def test_a_learner_with_all_its_steps_gets_no_collect_not_even_ahead():
     assert pump(0, ahead=1200) == [[], [], [], []]
+
+
+def test_the_learners_newest_answer_is_its_demand_whatever_order_ray_reports(
+    ray_session, monkeypatch
+):
+    """Answers taken oldest first: a consumer that emptied the learner's queue asked again,
+    and that newer answer (a demand again) must not be overwritten by the older one (none:
+    full), or every worker would wait for ever."""
+    import rollout.service as service_module
+
+    @ray_session.remote(num_cpus=0)
+    class Answers:
+        def __init__(self) -> None:
+            self.calls = 0
+
+        def submit(self, segments: list) -> tuple[int, int]:
+            self.calls += 1
+            return 0, [0, 300, 0][self.calls - 1]  # full, emptied and asked again, full
+
+    learner = Answers.remote()
+    config = ServiceConfig(UnityConfig(None), num_workers=1)
+    service = RolloutService(config, actor_factory, learner=learner)
+    service._submits = [learner.submit.remote([]) for _ in range(2)]
+    ray_session.get(service._submits)
+    real = ray_session.wait
+
+    def newest_first(refs: list, **options: object) -> tuple[list, list]:
+        ready, rest = real(refs, **options)
+        return list(reversed(ready)), rest
+
+    monkeypatch.setattr(service_module.ray, "wait", newest_first)
+    service._drain_submits(block=False)
+    assert service._wanted == 300 and service._submits == []
+    ray_session.kill(learner)

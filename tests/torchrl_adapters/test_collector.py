@@ -5,7 +5,9 @@ nothing left running after ``shutdown``; and docs/examples/torchrl_ppo.py (torch
 
 from __future__ import annotations
 
+import gc
 import importlib.util
+from multiprocessing import resource_tracker
 from pathlib import Path
 
 import pytest
@@ -88,6 +90,10 @@ def test_the_torchrl_ppo_example_trains_on_a_step_budget(ray_session, registry):
     history = example().train(
         total_frames=3 * 1024, frames_per_batch=1024, minibatch=256, epochs=2, **options(registry)
     )
+    # torchrl's storages keep counters in multiprocessing values, whose semaphores start
+    # the interpreter's resource tracker: stopped here, the buffer being gone
+    gc.collect()
+    resource_tracker._resource_tracker._stop()
     assert len(history) == 3
     assert all(torch.isfinite(torch.tensor(h["loss"])) for h in history)
     assert history[-1]["policy_version"] >= 1  # acted by weights the loop trained
