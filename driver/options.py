@@ -174,12 +174,11 @@ class TrainOptions:
         "learner (0 where it runs on a head without CPUs for Ray, as on KubeRay)",
         check=at_least(0),
     )
-    learner_threads: int | None = option(
-        None,
-        "torch threads of a CPU learner; default: torch's own (a thread per core, as "
-        "mlagents-learn) when every trainer waits for its updates (PPO, POCA without "
-        "--collect-ahead: the workers idle meanwhile), else 1 (workers collect beside it)",
-        check=lambda value: None if value is None else at_least(1)(value),
+    learner_threads: int = option(
+        1,
+        "torch threads of the learner (mlagents-learn: one per core); on 2 cores more "
+        "gave nothing for PPO or POCA (benchmarks/bench_learner_threads.py)",
+        check=at_least(1),
     )
     device: str | None = option(
         None,

@@ -106,23 +106,11 @@ def choose_device(options: TrainOptions, config: RunConfig) -> str:
         raise TrainingError(str(error)) from None
 
 
-def learner_threads(options: TrainOptions, config: RunConfig, device: str) -> int | None:
-    """Torch threads of the learner (None: torch's default, a thread per core). The cores
-    are the learner's while every worker waits for its update (on-policy trainers,
-    nothing collected ahead), as mlagents-learn's trainer has them between its
-    environments' steps; where workers collect through updates, or on a GPU, one."""
-    if options.learner_threads is not None:
-        return options.learner_threads
-    behaviors = [*config.behaviors.values()] or [config.default]
-    waits = all(trainer(s).waits_for_fresh_data for s in behaviors)
-    return None if device == "cpu" and waits and options.collect_ahead == 0 else 1
-
-
 def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
     return learner_actor(
         config,
         options.max_steps,
-        torch_threads=learner_threads(options, config, device),
+        torch_threads=options.learner_threads,
         seed=options.seed,
         device=device,
         mixed_precision=options.mixed_precision,
