@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from rollout.ports import PortAllocator, PortRange
@@ -97,3 +99,39 @@ def test_the_torchrl_ppo_example_trains_on_a_step_budget(ray_session, registry):
     assert len(history) == 3
     assert all(torch.isfinite(torch.tensor(h["loss"])) for h in history)
     assert history[-1]["policy_version"] >= 1  # acted by weights the loop trained
+
+
+class RandomBranches(TensorDictModuleBase):
+    """A policy of three branches of three choices: what acts matters not here."""
+
+    in_keys, out_keys = ["observation"], ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict["action"] = torch.randint(0, 3, (tensordict.batch_size[0], 3))
+        return tensordict
+
+
+def test_every_behavior_comes_as_its_own_entry_with_a_policy_each(ray_session, registry):
+    """StrikersVsGoalie: two behaviors, a policy each by name; without ``behavior`` a batch
+    is keyed by behavior id, each entry flat under torchrl's names."""
+    policies = {"Striker": RandomBranches(), "Goalie": RandomBranches()}
+    collector = UnityCollector(
+        "unitysim:StrikersVsGoalie", policies, 200, 400, horizon=32, **options(registry)
+    )
+    try:
+        batches = list(collector)
+    finally:
+        collector.shutdown()
+    assert len(batches) == 2 and collector.frames >= 400
+    for batch in batches:
+        assert set(batch.keys()) == {"Striker?team=0", "Goalie?team=1"}
+        assert sum(batch[name].numel() for name in batch.keys()) >= 200  # noqa: SIM118
+        striker, goalie = batch["Striker?team=0"], batch["Goalie?team=1"]
+        assert set(striker["observation"].keys()) == {  # two sensors: by name
+            "StackingSensor_size3_BlueRayPerceptionSensor",
+            "StackingSensor_size3_BlueRayPerceptionSensorReverse",
+        }
+        assert goalie["observation"].shape[1:] == (738,)  # one sensor: its tensor
+        for entry, team in ((striker, 0), (goalie, 1)):
+            assert entry["action"].shape[1:] == (3,) and entry["team"].eq(team).all()
+            assert entry["next", "done"][-1].item()
