@@ -215,6 +215,9 @@ def _cmd_record_demo(args: argparse.Namespace) -> int:
         recorded = record_demo(options)
     except (TrainingError, UnityError) as error:
         return _error(error)
+    except KeyboardInterrupt:
+        print("error: interrupted; no file written", file=sys.stderr)
+        return 130
     except RECOVERABLE as error:  # the build crashed or hung mid-recording: nothing written
         first = (str(error).strip().splitlines() or [type(error).__name__])[0]
         print(f"error: {options.env} failed while recording ({first}); no file written",

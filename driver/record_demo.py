@@ -144,10 +144,16 @@ def record_demo(options: RecordDemoOptions) -> Recorded:
     assert options.out is not None  # validated
     path = _output(options.out)
     policies = _checkpoint(options.checkpoint) if options.checkpoint else {}
+    if policies and options.stochastic:
+        import torch
+
+        torch.manual_seed(options.seed)  # sampled actions: the same file for the same seed
     config = UnityConfig(
-        options.env, seed=options.seed, no_graphics=options.no_graphics,
+        None if options.env == "editor" else options.env,
+        seed=options.seed,
+        no_graphics=options.no_graphics,
         timeout_wait=options.timeout_wait,
-    )  # fmt: skip
+    )
     with UnityInstance(config) as unity:
         unity.reset()
         specs = dict(unity.behavior_specs)
@@ -211,6 +217,9 @@ def _write(path: Path, demo: Demonstration, png: list[int]) -> None:
     os.close(descriptor)
     try:
         write_demo(temporary, demo, png)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)  # as an ordinary file, not mkstemp's 0600
         os.replace(temporary, path)
     except DemoError as error:
         raise TrainingError(f"--out {path}: {error.problem}") from None

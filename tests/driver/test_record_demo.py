@@ -31,9 +31,9 @@ from tests.helpers import free_port
 from unitysim.envs import load
 
 
-def build_spec(env: str) -> BehaviorSpec:
+def build_spec(env: str, index: int = 0) -> BehaviorSpec:
     """A unitysim behavior's spec, as the build announces it."""
-    (behavior,) = load(env).behaviors
+    behavior = load(env).behaviors[index]
     observations = [
         ObservationSpec(
             s.shape,
@@ -190,3 +190,38 @@ def test_a_crash_while_recording_leaves_no_file(tmp_path, ball_checkpoint):
     lines = stderr.strip().splitlines()
     assert lines[-1].startswith("error: unitysim:3DBall failed while recording")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ports"]
+
+
+def test_one_behavior_of_several_the_others_random(tmp_path):
+    path = tmp_path / "striker.pt"
+    write_checkpoint(path, {"Striker?team=0": build_spec("StrikersVsGoalie", 0)})
+    out = tmp_path / "striker.demo"
+    code, _, stderr = record(
+        tmp_path, "--env", "unitysim:StrikersVsGoalie", "--checkpoint", str(path),
+        "--behavior", "Striker", "--steps", "100", "--out", str(out),
+    )  # fmt: skip
+    assert code == 0, stderr
+    demo = read_demo(out, build_spec("StrikersVsGoalie", 0))
+    assert demo.behavior_name == "Striker?team=0" and demo.meta.steps == 100
+    assert len({s.agent_id for s in demo.steps}) == 16  # the strikers; the goalies are not
+    assert {s.group_id for s in demo.steps} != {0}  # their groups recorded
+
+
+@pytest.mark.integration
+def test_records_from_a_trained_run_directory(tmp_path):
+    """A checkpoint as ``train`` writes it (per-behavior folders), named by its run."""
+    trained = cli(
+        "train", "--env", "unitysim:Basic", "--no-progress", "--max-steps", "300",
+        "--results-dir", str(tmp_path / "results"), "--run-id", "tiny", "--workers", "1",
+        "--cpus", "1", "--max-seconds", "120", timeout=300,
+        UNITY_ROLLOUT_RUNTIME_DIR=str(tmp_path / "train-ports"),
+    )  # fmt: skip
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    out = tmp_path / "basic.demo"
+    run = tmp_path / "results" / "tiny"
+    code, _, stderr = record(
+        tmp_path, "--env", "unitysim:Basic", "--checkpoint", str(run), "--steps", "50",
+        "--out", str(out),
+    )  # fmt: skip
+    assert code == 0, stderr
+    assert read_demo(out, build_spec("Basic")).meta.steps == 50
