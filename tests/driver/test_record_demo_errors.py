@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from driver.declaration import declared, flag
+from driver.options import RecordDemoOptions
 from tests.driver.test_record_demo import build_spec, record, write_checkpoint
 
 
@@ -108,3 +110,9 @@ def test_a_folder_no_file_can_be_made_in(tmp_path, checkpoints):
     assert stderr.strip().splitlines() == [
         "error: --out /proc/x.demo: the folder '/proc' is not writable (No such file or directory)"
     ]
+
+
+def test_the_docs_list_every_option():
+    text = (Path(__file__).resolve().parents[2] / "docs/demonstrations.md").read_text()
+    names = [flag(item.name) for item, _ in declared(RecordDemoOptions)]
+    assert [name for name in names if f"`{name}`" not in text] == []
