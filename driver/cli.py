@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, NoReturn
 
 from driver.declaration import TrainingError, add_arguments, from_arguments
-from driver.options import CollectOptions, TrainOptions
+from driver.options import CollectOptions, RecordDemoOptions, TrainOptions
 
 if TYPE_CHECKING:
     from driver.local_ray import BackgroundRay
@@ -201,6 +201,35 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_record_demo(args: argparse.Namespace) -> int:
+    """Record a .demo file: one Unity instance, a checkpoint's policy or a unitysim expert."""
+    try:
+        options = from_arguments(RecordDemoOptions, args)
+    except TrainingError as error:
+        return _error(error)
+    from driver.record_demo import record_demo
+    from rollout.builds import UnityError
+    from rollout.unity import RECOVERABLE
+
+    try:
+        recorded = record_demo(options)
+    except (TrainingError, UnityError) as error:
+        return _error(error)
+    except KeyboardInterrupt:
+        print("error: interrupted; no file written", file=sys.stderr)
+        return 130
+    except RECOVERABLE as error:  # the build crashed or hung mid-recording: nothing written
+        first = (str(error).strip().splitlines() or [type(error).__name__])[0]
+        print(f"error: {options.env} failed while recording ({first}); no file written",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    print(
+        f"{recorded.path}: {recorded.steps} steps of {recorded.behavior}, "
+        f"{recorded.episodes} episodes, mean reward {recorded.mean_reward:.3f}"
+    )
+    return 0
+
+
 def _cmd_unitysim(args: argparse.Namespace) -> int:
     from unitysim.__main__ import main as unitysim_main
 
@@ -243,6 +272,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", help="output directory (default: <run>/exported or the checkpoint's directory)"
     )
     export.set_defaults(func=_cmd_export)
+
+    record = commands.add_parser(
+        "record-demo", help="record a .demo file (a checkpoint's policy or a unitysim expert)"
+    )
+    add_arguments(record, RecordDemoOptions)
+    record.set_defaults(func=_cmd_record_demo)
 
     unitysim = commands.add_parser(
         "unitysim", help="the headless Unity stand-in (build, list, play, editor)"

@@ -1,6 +1,6 @@
-"""The options of ``unity-rollout train`` and ``collect``, declared once: each is a typed
-field with its default, its help, its check and, for mlagents-learn's, its key in a
-trainer config's run-level sections; the command line, its help text, the defaults, the
+"""The options of ``unity-rollout train``, ``collect`` and ``record-demo``, declared once:
+each is a typed field with its default, its help, its check and, for mlagents-learn's, its
+key in a trainer config's run-level sections; the command line, its help text, the defaults, the
 config's run-level keys and the validation all come from these declarations
 (``driver/declaration.py``). Every mlagents-learn 1.1.0 option is one of them, with its
 meaning; where our default differs, the help says so. Validation runs before Ray starts,
@@ -23,7 +23,7 @@ from driver.declaration import (
 )
 from rollout.restarts import RestartPolicy
 
-__all__ = ["CollectOptions", "TrainOptions", "TrainingError"]
+__all__ = ["CollectOptions", "RecordDemoOptions", "TrainOptions", "TrainingError"]
 
 
 def workers_value(text: str) -> int | str:
@@ -293,3 +293,54 @@ class CollectOptions:
     def validate(self) -> CollectOptions:
         check_fields(self)
         return self
+
+
+def demo_path(value: str | None) -> str | None:
+    if value is None:
+        return "required: the .demo file to write"
+    return None if value.endswith(".demo") else f"a file name ending in .demo, got {value!r}"
+
+
+@dataclass(frozen=True)
+class RecordDemoOptions:
+    env: str = option("unitysim:3DBall", f"{ENV_HELP} (one instance, on a leased port)")
+    out: str | None = option(
+        None, "the .demo file to write (its name is the demo's)", check=demo_path
+    )
+    checkpoint: str | None = option(
+        None, "a checkpoint (.pt) or a run directory, as export takes it: the policies that act"
+    )
+    heuristic: bool = option(
+        False, "unitysim builds: the environment's scripted expert plays the recorded behavior"
+    )
+    behavior: str | None = option(None, "the behavior to record (default: the build's only one)")
+    steps: int | None = option(None, "agent steps to record (default 1000)", check=at_least(1))
+    episodes: int | None = option(None, "record until this many episodes end", check=at_least(1))
+    stochastic: bool = option(False, "sample the policy's actions (default: its most likely)")
+    actions: Literal["unity", "decided"] = option(
+        "unity",
+        "the action stored with a step: unity, the one that led to it, as Unity's recorder "
+        "stores it (zeros at an episode's first step); decided, the one taken at it",
+        parse=lambda text: text,
+        check=lambda v: None if v in ("unity", "decided") else f"unity or decided, got {v!r}",
+    )
+    seed: int = option(0, "seeds the player and the random actions")
+    no_graphics: bool = option(False, "start the build with -nographics")
+    timeout_wait: int = option(60, "seconds to wait for the build to connect", check=at_least(1))
+    given: frozenset[str] = given_field()
+
+    def validate(self) -> RecordDemoOptions:
+        check_fields(self)
+        if self.checkpoint is None and not self.heuristic:
+            raise TrainingError("give --checkpoint PATH (a trained policy) or --heuristic")
+        if self.heuristic and not self.env.startswith("unitysim:"):
+            raise TrainingError(
+                f"--heuristic: scripted experts exist for unitysim builds only, not {self.env!r}"
+            )
+        if self.steps is not None and self.episodes is not None:
+            raise TrainingError("give --steps or --episodes, not both")
+        return self
+
+    @property
+    def step_limit(self) -> int | None:
+        return self.steps if self.steps is not None or self.episodes is not None else 1000

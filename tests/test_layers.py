@@ -21,7 +21,7 @@ ALLOWED: dict[str, set[str]] = {
     "rollout": {"batches", "mlagents_compat", "unitysim.launcher"},
     "gymnasium_adapters": {"batches", "rollout"},
     "torchrl_adapters": {"batches", "rollout"},  # a torchrl collector over the service
-    "driver": {"batches", "learners", "mlagents_compat", "rollout", "unitysim"},
+    "driver": {"batches", "demonstrations", "learners", "mlagents_compat", "rollout", "unitysim"},
     "testkit": {"batches", "driver", "learners", "mlagents_compat", "rollout", "unitysim"},
 }
 NOT_PACKAGES = {"tests", "benchmarks", "scripts", "deploy", "docs", "config"}

@@ -1,0 +1,75 @@
+"""The scripted experts solve their tasks (a demo of a bad expert is worthless), measured on
+the environments themselves against uniform random play; the protocol path is
+``tests/driver/test_record_demo.py``'s."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from unitysim.envs import load
+from unitysim.envs.base import Actions, Parameters
+from unitysim.experts import EXPERTS, LEFT, RIGHT, expert_for, rays, toward
+
+
+def play(env_name: str, episodes: int, expert: bool, seed: int = 0) -> tuple[float, float]:
+    """(success rate, mean return) over the first ``episodes`` episodes to end."""
+    env_class = load(env_name)
+    env = env_class(np.random.default_rng(seed), 1, Parameters())
+    (behavior,) = env_class.behaviors
+    player = expert_for(behavior.name, seed)
+    assert player is not None
+    rng = np.random.default_rng(seed)
+    output, returns, ended = env.reset(), {}, []
+    while len(ended) < episodes:
+        infos = output[behavior.name]
+        for row, agent in enumerate(infos.agent_id.tolist()):
+            returns[agent] = returns.get(agent, 0.0) + float(infos.reward[row])
+            if infos.done[row]:
+                ended.append((returns.pop(agent), float(infos.reward[row]) > 0.5))
+        player.forget(infos.agent_id[infos.done])
+        deciding = ~infos.done
+        ids = infos.agent_id[deciding]
+        if expert:
+            actions = player.act(ids, [o[deciding] for o in infos.obs])
+        else:
+            actions = rng.integers(0, 5, (len(ids), 1)).astype(np.int32)
+        output = env.step({behavior.name: Actions(np.zeros((len(ids), 0), np.float32), actions)})
+    returns_, solved = zip(*ended[:episodes], strict=True)
+    return float(np.mean(solved)), float(np.mean(returns_))
+
+
+def test_hallway_expert_goes_to_the_goal_of_the_symbols_colour():
+    success, mean_return = play("Hallway", 40, expert=True)
+    assert success >= 0.9 and mean_return > 0.8  # measured: 1.00, 0.89
+    assert play("Hallway", 20, expert=False)[0] <= 0.1
+
+
+def test_pyramids_expert_presses_the_switch_and_reaches_the_gold():
+    success, mean_return = play("Pyramids", 40, expert=True)
+    random_success, random_return = play("Pyramids", 20, expert=False)
+    assert success >= 0.7 and mean_return >= 1.0  # measured over 100: 0.92, 1.61
+    assert random_success <= 0.2 and random_return < 0.0  # measured: 0.02, -0.96
+
+
+def test_ray_reading_and_steering():
+    frame = np.zeros((1, 3 * 7), np.float32)  # 3 rays, 5 tags: one-hot, missed, fraction
+    frame[0, 0 * 7 + 4], frame[0, 0 * 7 + 6] = 1.0, 0.5  # ahead: a wall at half length
+    frame[0, 1 * 7 + 5], frame[0, 1 * 7 + 6] = 1.0, 1.0  # right: nothing
+    frame[0, 2 * 7 + 2], frame[0, 2 * 7 + 6] = 1.0, 0.2  # left: tag 2
+    tags, fractions = rays(frame, 5)
+    assert tags.tolist() == [[4, -1, 2]] and fractions.tolist() == [[0.5, 1.0, pytest.approx(0.2)]]
+    assert toward(tags[0] == 2) == LEFT and toward(np.array([0, 1, 0], bool)) == RIGHT
+    assert toward(tags[0] == 3) is None
+
+
+def test_experts_forget_ended_episodes():
+    expert = expert_for("Hallway?team=0")
+    assert expert is not None and sorted(EXPERTS) == ["Hallway?team=0", "Pyramids?team=0"]
+    obs = [np.zeros((2, 105), np.float32), np.zeros((2, 3), np.float32)]
+    obs[0][:, 70 + 3] = 1.0  # the newest frame's first ray sees the red block
+    expert.act(np.array([7, 8]), obs)
+    assert expert.goal == {7: expert.RED_GOAL, 8: expert.RED_GOAL}
+    expert.forget([7])
+    assert 7 not in expert.goal and 7 not in expert.unseen and 8 in expert.goal
+    assert expert_for("3DBall?team=0") is None
