@@ -2,7 +2,8 @@
 
 A :class:`Segment` is what travels (Ray's object store, the learner's queue); the learner
 takes it ``to_tensordict``, the batch of docs/batch-format.md. ``rollout.segments``
-builds them from Unity's steps.
+builds them from Unity's steps. :class:`Sources` lets whoever takes them (a learner, a
+queue) take a delivery Ray retried once.
 """
 
 from __future__ import annotations
@@ -90,3 +91,27 @@ def _walk(fn: Callable[..., Any], *trees: Mapping[str, Any]) -> dict[str, Any]:
         else fn(*(t[key] for t in trees))
         for key, value in trees[0].items()
     }
+
+
+class Sources:
+    """The segment sources taken so far, to take each once. Per (incarnation, behavior): the
+    number up to which all were taken, and those taken above it (deliveries come nearly in
+    order, so the set stays small however long the run)."""
+
+    def __init__(self) -> None:
+        self._taken: dict[tuple[str, str], tuple[int, set[int]]] = {}
+
+    def first(self, segment: Segment) -> bool:
+        """Whether this is the first delivery of the segment's source (recording it)."""
+        assert segment.source is not None
+        incarnation, number = segment.source
+        key = (incarnation, segment.behavior)
+        upto, above = self._taken.get(key, (0, set()))
+        if number <= upto or number in above:
+            return False
+        above.add(number)
+        while upto + 1 in above:
+            upto += 1
+            above.discard(upto)
+        self._taken[key] = (upto, above)
+        return True

@@ -1,8 +1,7 @@
 """What the learner counts, without torch: the driver reads these (``progress``), and the
 learner's Ray host counts the segments that arrive while its process still loads torch.
 
-``LearnerStats``: the learner's throughput counters. ``Sources``: which segment
-deliveries were taken, so that a retried one is taken once. ``all_done``: whether the
+``LearnerStats``: the learner's throughput counters. ``all_done``: whether the
 run has its steps, ``steps_left`` how many it still needs. ``on_policy_wanted``: an
 on-policy behavior's demand, steps still missing before its next update; ``demand``: the
 learner's, bounded by what the run still needs.
@@ -16,7 +15,6 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from batches.segment import Segment
     from learners.settings import RunConfig
 
 
@@ -71,27 +69,3 @@ class LearnerStats:
     submit_seconds: float = 0.0
     updates: int = 0
     duplicate_steps: int = 0  # segments delivered twice (Ray retries), taken once
-
-
-class Sources:
-    """The segment sources taken so far, to take each once. Per (incarnation, behavior): the
-    number up to which all were taken, and those taken above it (deliveries come nearly in
-    order, so the set stays small however long the run)."""
-
-    def __init__(self) -> None:
-        self._taken: dict[tuple[str, str], tuple[int, set[int]]] = {}
-
-    def first(self, segment: Segment) -> bool:
-        """Whether this is the first delivery of the segment's source (recording it)."""
-        assert segment.source is not None
-        incarnation, number = segment.source
-        key = (incarnation, segment.behavior)
-        upto, above = self._taken.get(key, (0, set()))
-        if number <= upto or number in above:
-            return False
-        above.add(number)
-        while upto + 1 in above:
-            upto += 1
-            above.discard(upto)
-        self._taken[key] = (upto, above)
-        return True

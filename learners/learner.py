@@ -28,10 +28,10 @@ import torch
 
 from batches import keys
 from batches.contracts import Weights, base_name
-from batches.segment import Segment
+from batches.segment import Segment, Sources
 from batches.specs import spec_from_dict
 from learners import checkpoint
-from learners.counters import LearnerStats, Sources, all_done, budget, demand
+from learners.counters import LearnerStats, all_done, budget, demand
 from learners.devices import Compute, to_cpu
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state

@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Any
 
 from batches import keys
 from batches.contracts import Snapshot, Weights
-from batches.segment import Segment
-from learners.counters import LearnerStats, Sources, all_done, demand, on_policy_wanted
+from batches.segment import Segment, Sources
+from learners.counters import LearnerStats, all_done, demand, on_policy_wanted
 from learners.trainers import trainer
 
 if TYPE_CHECKING:

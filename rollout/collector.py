@@ -183,7 +183,7 @@ class Collector:
             if steps >= min_steps or (deadline is not None and time.perf_counter() >= deadline):
                 break
         self.metrics.seconds += time.perf_counter() - started
-        self._collects += bool(pieces)  # numbered without gaps: see learners.learner.Sources
+        self._collects += bool(pieces)  # numbered without gaps: see batches.segment.Sources
         source = (self.metrics.incarnation, self._collects)
         segments = [
             dataclasses.replace(Segment.concat(parts), source=source) for parts in pieces.values()

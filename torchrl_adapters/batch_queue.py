@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from batches.contracts import Weights, base_name
-from batches.segment import Segment
+from batches.segment import Segment, Sources
 
 ALL = "*"  # a state for every behavior
 
@@ -28,14 +28,12 @@ class BatchQueue:
         self.version = 0
         self.states: dict[str, Mapping[str, Any]] = {}  # behavior name or ALL -> state
         self.seen: list[str] = []  # behavior ids, in order met
-        self._sources: set[tuple] = set()
+        self._sources = Sources()
 
     def submit(self, segments: list[Segment]) -> tuple[int, int]:
         for segment in segments:
-            if segment.source is not None:
-                if segment.source in self._sources:
-                    continue  # a delivery Ray retried
-                self._sources.add(segment.source)
+            if segment.source is not None and not self._sources.first(segment):
+                continue  # a delivery Ray retried
             if segment.behavior not in self.seen:
                 self.seen.append(segment.behavior)
                 if self.states:  # weights were published without it: its actors need them

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from batches import keys
-from batches.segment import Segment
+from batches.segment import Segment, Sources
 from learners.config import defaults, parse_config
 from learners.impala import IMPALA
-from learners.learner import CentralLearner, Sources, policy_lag
+from learners.learner import CentralLearner, policy_lag
 from learners.modules import add_flat_action
 from learners.policies import ActorCritic
 from learners.ppo import PPO, Steps

@@ -71,9 +71,12 @@ def test_the_queue_asks_for_one_batch_and_takes_each_source_once():
     assert queue.submit([part("A?team=0", 60, ("w", 1))]) == (0, 40)
     assert queue.take() is None  # not a batch yet
     assert queue.submit([part("A?team=0", 60, ("w", 1))]) == (0, 40)  # Ray's retry: dropped
-    assert queue.submit([part("A?team=0", 50, ("w", 2))]) == (0, 0)  # a batch: no more now
+    assert queue.submit([part("A?team=0", 20, ("w", 2)), part("B?team=1", 30, ("w", 2))]) == (
+        0,
+        0,
+    )  # one collect, two behaviors: each taken; a batch, no more now
     taken = queue.take()
-    assert [len(s) for s in taken] == [60, 50] and queue.wanted() == 100
+    assert [len(s) for s in taken] == [60, 20, 30] and queue.wanted() == 100
     only = BatchQueue(frames_per_batch=10, behavior="B")
     only.submit([part("A?team=0", 30), part("B?team=0", 4)])
     assert only.steps == 4 and only.seen == ["A?team=0", "B?team=0"]
