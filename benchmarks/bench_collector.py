@@ -3,7 +3,7 @@ unitysim 3DBall build (12 agents per instance): agent steps per second at 1, 2, 
 instances, with Unity answering at once and with every exchange ``--delay-ms`` late (real
 Unity's pace). torchrl's side is its documented way to run several instances: a
 ``ParallelEnv`` of ``UnityMLAgentsEnv`` (one process and port each) under a
-``SyncDataCollector``; ours: one Ray worker per instance. Each run collects for
+``Collector`` (its synchronous one); ours: one Ray worker per instance. Each run collects for
 ``--seconds`` after its first batch (start-up left out); the two alternate.
 
     .venv/bin/python benchmarks/bench_collector.py --instances 1 2 4 8 --delays 0 40
@@ -72,10 +72,12 @@ def rate(batches: object, seconds: float, count: object) -> float:
 
 
 def torchrl_rate(player: str, instances: int, delay: float, seconds: float, port: int) -> float:
-    from torchrl.collectors import SyncDataCollector
+    from torchrl.collectors import Collector
     from torchrl.envs import ParallelEnv, SerialEnv, UnityMLAgentsEnv
 
     def make(index: int) -> UnityMLAgentsEnv:
+        import mlagents_compat  # noqa: F401  (a spawned process: mlagents-envs on protobuf 7)
+
         extra = ["--sim-delay-ms", str(delay)]
         return UnityMLAgentsEnv(
             file_name=player, worker_id=index, base_port=port, no_graphics=True,
@@ -88,14 +90,14 @@ def torchrl_rate(player: str, instances: int, delay: float, seconds: float, port
     sensor = next(k[2] for k in env.observation_spec.keys(True, True) if len(k) == 3)
     policy = PerAgent(network(), sorted(set(agents)), sensor)
     per_step = len(set(agents))
-    collector = SyncDataCollector(
+    collector = Collector(
         env, policy, frames_per_batch=max(1, FRAMES_PER_BATCH // per_step), total_frames=-1
     )
     try:
         return rate(collector, seconds, lambda batch: batch.numel() * per_step)
     finally:
         collector.shutdown()
-        env.close()
+        env.close(raise_if_closed=False)
 
 
 def ours_rate(player: str, instances: int, delay: float, seconds: float) -> float:

@@ -11,7 +11,7 @@ the module's new weights to every worker once per version.
         collector.update_policy_weights_()
     collector.shutdown()
 
-As torchrl's synchronous collector, workers hold back while the user trains: they collect
+As torchrl's synchronous ``Collector``, workers hold back while the user trains: they collect
 at most one batch ahead, acted by the weights of the last ``update_policy_weights_``
 (``policy_version`` says which). Agents come and go as Unity sends them; rows end at an
 episode's end or at ``horizon`` steps (``("next", "truncated")``), so a batch is a
