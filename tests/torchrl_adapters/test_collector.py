@@ -49,7 +49,7 @@ def test_batches_are_exact_in_torchrls_names_and_new_weights_reach_the_workers(
 ):
     actor, _ = example().make_actor_critic(8, 2)
     collector = UnityCollector(
-        "unitysim:3DBall", actor, 300, 1200, behavior="3DBall", horizon=32, **options(registry)
+        "unitysim:3DBall", actor, 300, 2100, behavior="3DBall", horizon=32, **options(registry)
     )
     batches, players = [], []
     try:
@@ -68,8 +68,8 @@ def test_batches_are_exact_in_torchrls_names_and_new_weights_reach_the_workers(
                 collector.update_policy_weights_()
     finally:
         collector.shutdown()
-    assert [b.batch_size for b in batches] == [torch.Size([300])] * 4
-    assert collector.frames == 1200
+    assert [b.batch_size for b in batches] == [torch.Size([300])] * 7
+    assert collector.frames == 2100
     first = batches[0]
     assert first["observation"].shape == (300, 8) and first["action"].shape == (300, 2)
     assert first["next", "observation"].shape == (300, 8)
@@ -80,7 +80,7 @@ def test_batches_are_exact_in_torchrls_names_and_new_weights_reach_the_workers(
     nxt, obs = first["next", "observation"][:-1], first["observation"][1:]
     torch.testing.assert_close(nxt[inside], obs[inside])
     # after the update, the steps acted by the new weights carry its version and its law
-    last = batches[-1]
+    last = torch.cat(batches[2:])  # after the update (steps in flight then: the old weights)
     new = last["policy_version"] == last["policy_version"].max()
     assert int(last["policy_version"].max()) > int(first["policy_version"].max())
     assert first["action"].mean().abs() < 0.3  # the initial policy: centred
