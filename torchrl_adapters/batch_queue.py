@@ -54,11 +54,6 @@ class BatchQueue:
         taken, self.segments, self.steps = self.segments, [], 0
         return taken
 
-    def put_back(self, segments: list[Segment]) -> None:
-        """What a batch left over, first in line for the next."""
-        self.segments[:0] = segments
-        self.steps += sum(len(s) for s in segments)
-
     def publish(self, states: Mapping[str, Mapping[str, Any]]) -> int:
         """New weights: by behavior name (without ``?team=``), or ``ALL``."""
         self.states = dict(states)

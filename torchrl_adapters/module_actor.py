@@ -24,7 +24,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from batches import keys
 from batches.contracts import base_name
-from torchrl_adapters.conventions import ACTION, LEGACY_LOG_PROB, LOG_PROB, OBSERVATION
+from torchrl_adapters.conventions import ACTION, LEGACY_LOG_PROB, LOG_PROB, OBSERVATION, observation
 
 
 class ModuleActor:
@@ -38,13 +38,8 @@ class ModuleActor:
         self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = len(next(iter(obs.values())))
-        tensors = {name: torch.from_numpy(obs[name]) for name in self.sensors}
-        observation: torch.Tensor | TensorDict = (
-            tensors[self.sensors[0]]
-            if len(self.sensors) == 1
-            else TensorDict(tensors, batch_size=[n])
-        )
-        given = TensorDict({OBSERVATION: observation}, batch_size=[n])
+        sensors = TensorDict({k: torch.from_numpy(obs[k]) for k in self.sensors}, batch_size=[n])
+        given = TensorDict({OBSERVATION: observation(sensors)}, batch_size=[n])
         if mask is not None:
             given[keys.ACTION_MASK] = torch.from_numpy(mask)
         with torch.no_grad():
