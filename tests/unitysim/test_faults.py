@@ -46,7 +46,7 @@ def test_fault_raises_the_real_exception(open_env, flags, error, message):
 def test_hang_times_out(open_env):
     started = time.monotonic()
     with (
-        open_env("3DBall", additional_args=["--sim-hang-after", "2"], timeout_wait=2) as env,
+        open_env("3DBall", additional_args=["--sim-hang-after", "2"], timeout_wait=5) as env,
         pytest.raises(UnityTimeOutException),
     ):
         run_steps(env, 10)
