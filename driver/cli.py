@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, NoReturn
 
 from driver.declaration import TrainingError, add_arguments, from_arguments
-from driver.options import CollectOptions, RecordDemoOptions, TrainOptions
+from driver.options import CollectOptions, RecordDemoOptions, TrainOptions, TuneOptions
 
 if TYPE_CHECKING:
     from driver.local_ray import BackgroundRay
@@ -230,6 +230,36 @@ def _cmd_record_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_tune(args: argparse.Namespace) -> int:
+    """A Ray Tune search (PBT by default) over trainer-config keys, each trial a run."""
+    import logging
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        tuning = from_arguments(TuneOptions, args)
+        options = from_arguments(TrainOptions, args)
+        from driver.tune import plan_tune
+
+        planned = plan_tune(options, tuning)
+    except TrainingError as error:
+        return _error(error)
+    if not options.address:
+        _loopback_only_ray()
+    from driver.tune import tune_run
+
+    result = tune_run(planned)
+    if result.best_trial is None:
+        print(f"error: no trial reported a reward; see {result.root}/trials.csv", file=sys.stderr)
+        return 1
+    print(
+        f"tune finished: {result.trials} trials ({result.errors} failed); best "
+        f"{result.best_trial}, mean reward {result.best_reward:.3f}; its config: "
+        f"{result.best_config}; all trials: {result.root}/trials.csv",
+        file=sys.stderr,
+    )
+    return 1 if result.errors else 0
+
+
 def _cmd_unitysim(args: argparse.Namespace) -> int:
     from unitysim.__main__ import main as unitysim_main
 
@@ -278,6 +308,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_arguments(record, RecordDemoOptions)
     record.set_defaults(func=_cmd_record_demo)
+
+    tune = commands.add_parser(
+        "tune", help="search trainer-config keys with Ray Tune (PBT), each trial a full run"
+    )
+    add_arguments(tune, TrainOptions)
+    add_arguments(tune, TuneOptions)
+    tune.set_defaults(func=_cmd_tune)
 
     unitysim = commands.add_parser(
         "unitysim", help="the headless Unity stand-in (build, list, play, editor)"

@@ -23,7 +23,7 @@ from driver.declaration import (
 )
 from rollout.restarts import RestartPolicy
 
-__all__ = ["CollectOptions", "RecordDemoOptions", "TrainOptions", "TrainingError"]
+__all__ = ["CollectOptions", "RecordDemoOptions", "TrainOptions", "TrainingError", "TuneOptions"]
 
 
 def workers_value(text: str) -> int | str:
@@ -344,3 +344,45 @@ class RecordDemoOptions:
     @property
     def step_limit(self) -> int | None:
         return self.steps if self.steps is not None or self.episodes is not None else 1000
+
+
+def search_file(value: str | None) -> str | None:
+    return "required: a YAML file of trainer-config keys and values to try" if not value else None
+
+
+@dataclass(frozen=True)
+class TuneOptions:
+    """``unity-rollout tune``'s own options; each trial takes ``train``'s (docs/tune.md)."""
+
+    search: str | None = option(
+        None, "a YAML file: trainer-config keys and the values to try", check=search_file
+    )
+    trials: int = option(
+        4, "trials (Tune's num_samples; a grid multiplies them)", check=at_least(1)
+    )
+    scheduler: Literal["pbt", "asha", "fifo"] = option(
+        "pbt",
+        "pbt: population based training through the trials' checkpoints; asha: stop the "
+        "worst early; fifo: every trial to its end",
+        parse=lambda text: text,
+        check=lambda v: None if v in ("pbt", "asha", "fifo") else f"pbt, asha or fifo, got {v!r}",
+    )
+    perturbation_interval: int | None = option(
+        None, "pbt: steps between exploit and explore (default: max_steps / 5)", check=at_least(1)
+    )
+    report_every: int | None = option(
+        None,
+        "steps between a trial's reports (default: the ranked behavior's summary_freq)",
+        check=at_least(1),
+    )
+    metric_behavior: str | None = option(
+        None, "the behavior whose mean reward ranks trials (default: the config's first)"
+    )
+    concurrent_trials: int | None = option(
+        None, "trials run at once (default: all; each takes --workers workers)", check=at_least(1)
+    )
+    given: frozenset[str] = given_field()
+
+    def validate(self) -> TuneOptions:
+        check_fields(self)
+        return self

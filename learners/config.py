@@ -305,6 +305,11 @@ def parse_config(data: object, source: str = "<config>") -> RunConfig:
 
 def load_config(path: str | Path) -> RunConfig:
     """Read and check a trainer-config YAML file; every problem is one ``ConfigError`` line."""
+    return parse_config(read_config_data(path), str(path))
+
+
+def read_config_data(path: str | Path) -> Any:
+    """A trainer-config YAML file's data, unchecked; ``ConfigError`` when it does not read."""
     source = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -317,7 +322,7 @@ def load_config(path: str | Path) -> RunConfig:
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
         problem = getattr(error, "problem", None) or str(error).splitlines()[0]
         raise ConfigError(f"{source}: invalid YAML: {where}{problem}") from error
-    return parse_config(data, source)
+    return data
 
 
 def config_for_env(name: str) -> Path | None:

@@ -141,7 +141,7 @@ def test_mlagents_learns_engine_and_environment_options_reach_every_unity():
     from pathlib import Path
 
     from driver.options import TrainOptions
-    from driver.train import service_config, unity_config
+    from driver.system import service_config, unity_config
     from rollout.ports import PortRange
 
     config = parse_config({"engine_settings": {"width": 64, "time_scale": 5, "no_graphics": True}})

@@ -94,7 +94,7 @@ def test_no_readable_checkpoint_of_a_behavior_is_a_one_line_error(tmp_path):
 
 def test_the_service_cuts_each_behaviors_rows_at_its_own_time_horizon():
     from driver.options import TrainOptions
-    from driver.train import service_config
+    from driver.system import service_config
     from rollout.horizons import Horizons
     from rollout.unity import UnityConfig
 

@@ -197,7 +197,7 @@ def test_workers_auto_fills_the_cluster(ray_session, tmp_path):
 
 
 def test_engine_settings_reach_the_unity_config(tmp_path):
-    from driver.train import unity_config
+    from driver.system import unity_config
     from learners.config import parse_config
 
     config = parse_config({"engine_settings": {"time_scale": 5, "no_graphics": False}})
@@ -207,7 +207,7 @@ def test_engine_settings_reach_the_unity_config(tmp_path):
 
 def test_restart_limits_and_timeout_reach_every_unity_instance(tmp_path):
     from driver.run_dir import load_run_config
-    from driver.train import unity_config
+    from driver.system import unity_config
     from rollout.restarts import RestartPolicy
 
     options = TrainOptions(env="unitysim:Basic", restarts_rate_limit_n=3, timeout_wait=7)

@@ -1,0 +1,145 @@
+"""A run's system wired from its options and trainer config: what every Unity instance
+gets, the learner actor and the service with its workers (not yet started). The CLI's
+``train`` and a Tune trial (``driver/tune_trial.py``) build theirs the same way."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import ray
+
+from driver.curriculum import LessonPlan, lesson_plan
+from driver.declaration import TrainingError
+from driver.learner_keeper import load_into
+from driver.options import TrainOptions
+from driver.run_dir import Start
+from learners.devices import DeviceError, learner_device
+from learners.factory import policy_factory
+from learners.remote import learner_actor
+from learners.settings import RunConfig
+from learners.trainers import trainer
+from rollout.horizons import Horizons
+from rollout.membership import request_workers, workers_wanted
+from rollout.ports import PortRange
+from rollout.service import RolloutService, ServiceConfig
+from rollout.unity import EngineSettings, UnityConfig
+
+
+def unity_config(
+    options: TrainOptions, config: RunConfig, run_dir: Path, lessons: LessonPlan | None = None
+) -> UnityConfig:
+    """What every Unity instance gets: the trainer config's engine_settings, the command
+    line's engine options over them (as mlagents-learn), the run's seed and arguments, the
+    environment parameters of the run's lessons (the first ones, unless resumed)."""
+    lessons = lessons or lesson_plan(options, config, None)
+    build = None if options.env == "editor" else options.env
+    engine_fields = {f.name for f in dataclasses.fields(EngineSettings)}
+    given = {k: v for k, v in config.engine.items() if k in engine_fields}
+    given |= {k: v for k in engine_fields if (v := getattr(options, k)) is not None}
+    return UnityConfig(
+        build,
+        # the engine settings a player takes as arguments, not through a side channel
+        no_graphics=options.no_graphics or bool(config.engine.get("no_graphics", False)),
+        no_graphics_monitor=options.no_graphics_monitor
+        or bool(config.engine.get("no_graphics_monitor", False)),
+        seed=options.seed,
+        num_areas=options.num_areas,
+        engine=EngineSettings(**given),
+        env_params=lessons.values(),
+        additional_args=options.env_args,
+        log_folder=str(run_dir / "unity-logs"),
+        restarts=options.restarts,
+        timeout_wait=options.timeout_wait,
+    )
+
+
+def choose_device(options: TrainOptions, config: RunConfig) -> str:
+    """The learner's device, chosen once per run: on a GPU when asked or (auto) when the
+    cluster has one. A restarted learner gets the same, so it waits for a GPU node to
+    come back rather than moving to the CPU or failing."""
+    requested = options.device or config.torch_device or "auto"
+    try:
+        return learner_device(requested, ray.cluster_resources().get("GPU", 0))
+    except DeviceError as error:
+        raise TrainingError(str(error)) from None
+
+
+def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
+    return learner_actor(
+        config,
+        options.max_steps,
+        torch_threads=options.learner_threads,
+        seed=options.seed,
+        device=device,
+        mixed_precision=options.mixed_precision,
+        inference=options.inference,
+    )
+
+
+def service_config(
+    options: TrainOptions,
+    config: RunConfig,
+    unity: UnityConfig,
+    resume: bool,
+    worker_cpus: float | None = None,
+) -> ServiceConfig:
+    """How the service runs the workers: their number (elastic: from the cluster), each
+    behavior's time horizon, and how much a learner of these trainer types takes at once."""
+    elastic = options.workers == "auto"
+    if elastic and options.max_workers:
+        request_workers(options.max_workers, 1.0, options.learner_cpus)
+    if elastic:
+        workers = workers_wanted(1.0, options.learner_cpus, options.max_workers)
+    else:
+        workers = int(options.workers)
+    horizons = Horizons(
+        config.default.time_horizon,
+        {name: s.time_horizon for name, s in config.behaviors.items()},
+    )
+    asynchronous = any(trainer(s).asynchronous for s in config.behaviors.values())
+    return ServiceConfig(
+        unity,
+        num_workers=workers,
+        horizon=horizons,
+        collects_per_worker=2 if asynchronous else 1,
+        learner_in_flight=4 if asynchronous else 2,
+        worker_cpus=worker_cpus
+        or (1.0 if options.address or elastic else min(1.0, options.cpus / workers)),
+        elastic=elastic,
+        max_workers=options.max_workers,
+        learner_cpus=options.learner_cpus,
+        await_learner_weights=resume,
+        collect_ahead=options.collect_ahead,
+        port_range=ports_from(options.base_port),
+    )
+
+
+def ports_from(base_port: int | None) -> PortRange | None:
+    """mlagents-learn's --base-port: ports from it up (a restarted instance takes a fresh
+    one, so a range of them); None: UNITY_ROLLOUT_PORT_RANGE or the default range."""
+    return None if base_port is None else PortRange(base_port, min(base_port + 99, 65535))
+
+
+def build_system(
+    options: TrainOptions,
+    config: RunConfig,
+    unity: UnityConfig,
+    start: Start,
+    device: str = "cpu",
+    worker_cpus: float | None = None,
+) -> tuple[RolloutService, Any]:
+    """Learner actor (restored when resuming, from another run's networks when
+    initialized) and the service with its workers (not started), which wait for the
+    learner's weights when it does not start from the factory's. ``worker_cpus``: each
+    worker's share, where the caller sizes it (a Tune trial's placement group)."""
+    learner = start_learner(options, config, device)
+    if start.resume is not None:
+        load_into(learner, start.resume)
+    elif start.initial is not None:
+        ray.get(learner.prepare.remote())  # as load_into: built before tensors arrive
+        ray.get(learner.initialize.remote(start.initial))
+    awaits = start.resume is not None or start.initial is not None
+    settings = service_config(options, config, unity, awaits, worker_cpus)
+    return RolloutService(settings, policy_factory(config, options.seed), learner), learner

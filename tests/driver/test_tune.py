@@ -1,0 +1,177 @@
+"""``unity-rollout tune``: the search file's checks (one line before Ray starts), and a
+4-trial PBT on 2 cores on a step budget: every trial a full run, an exploit through
+another trial's checkpoint with its optimizer state, no port clash, no process left and
+every stretch of every trial with its sample ledger balanced."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from driver.declaration import TrainingError
+from driver.options import TrainOptions, TuneOptions
+from driver.tune import plan_tune
+from driver.tune_search import with_values
+from learners.config import parse_config
+from rollout.ports import PortAllocator
+from tests.helpers import assert_run_gone
+
+CONFIG = {
+    "behaviors": {
+        "3DBall": {
+            "trainer_type": "ppo",
+            "hyperparameters": {"batch_size": 128, "buffer_size": 500, "num_epoch": 2},
+            "network_settings": {"hidden_units": 32, "num_layers": 1},
+            "time_horizon": 64,
+            "summary_freq": 500,
+            "checkpoint_interval": 100000,
+        }
+    }
+}
+LR = "behaviors.3DBall.hyperparameters.learning_rate"
+
+
+def write(path: Path, data: object) -> Path:
+    path.write_text(yaml.safe_dump(data) if not isinstance(data, str) else data)
+    return path
+
+
+def planned(tmp_path: Path, search: object, **tuning: object):
+    config = write(tmp_path / "config.yaml", CONFIG)
+    options = TrainOptions(config=str(config), results_dir=str(tmp_path / "results"))
+    return plan_tune(options, TuneOptions(search=str(write(tmp_path / "s.yaml", search)), **tuning))
+
+
+def test_with_values_sets_dotted_keys_and_makes_sections():
+    data = with_values(CONFIG, {LR: 0.01, "default_settings.hyperparameters.beta": 0.002})
+    assert data["behaviors"]["3DBall"]["hyperparameters"]["learning_rate"] == 0.01
+    assert data["behaviors"]["3DBall"]["hyperparameters"]["batch_size"] == 128
+    assert data["default_settings"] == {"hyperparameters": {"beta": 0.002}}
+    assert "learning_rate" not in CONFIG["behaviors"]["3DBall"]["hyperparameters"]  # a copy
+    config = parse_config(data)
+    assert config.for_behavior("3DBall").hyperparameters.learning_rate == 0.01
+
+
+def test_a_search_plans_with_its_domains(tmp_path):
+    plan = planned(tmp_path, {LR: {"loguniform": [1e-4, 1e-2]}, "behaviors.3DBall.max_steps": 4000})
+    assert [d.domain for d in plan.search.dimensions] == ["loguniform", "choice"]
+    assert plan.metric_behavior == "3DBall"
+    assert plan.report_every == 500  # the behavior's summary_freq
+    assert set(plan.search.space()) == {LR, "behaviors.3DBall.max_steps"}
+
+
+@pytest.mark.parametrize(
+    ("search", "message"),
+    [
+        ({"behaviors.3DBall.hyperparameters.learnig_rate": {"choice": [1e-3]}}, "learnig_rate"),
+        ({LR: {"loguniform": [0, 1e-2]}}, "loguniform needs low > 0"),
+        ({LR: {"uniform": [1e-2, 1e-3]}}, "low < high"),
+        ({LR: {"normal": [1e-3, 1e-4]}}, "one of choice, uniform"),
+        ({"behaviors.3DBall.hyperparameters.lambd": {"uniform": [0.9, 1.5]}}, "in [0, 1]"),
+        ({"behaviors.3DBal.hyperparameters.beta": {"choice": [1e-3]}}, "no behavior '3DBal'"),
+        ({"behaviors.3DBall.network_settings.hidden_units": {"choice": [32, 64]}}, "PBT"),
+        ({LR: {"grid": [1e-3, 3e-3]}}, "grid under PBT"),
+        ([1, 2], "a mapping of trainer-config keys"),
+    ],
+)
+def test_a_bad_search_is_one_line_naming_the_key(tmp_path, search, message):
+    with pytest.raises(TrainingError) as error:
+        planned(tmp_path, search)
+    assert message in str(error.value)
+    assert "\n" not in str(error.value)
+
+
+def test_network_keys_and_grids_are_searched_without_pbt(tmp_path):
+    search = {"behaviors.3DBall.network_settings.hidden_units": {"grid": [32, 64]}}
+    assert planned(tmp_path, search, scheduler="asha").search.dimensions[0].domain == "grid"
+
+
+def test_options_a_tune_cannot_honour_are_errors(tmp_path):
+    config = write(tmp_path / "config.yaml", CONFIG)
+    search = str(write(tmp_path / "s.yaml", {LR: {"choice": [1e-3]}}))
+    for given, flag in (({"resume": True}, "--resume"), ({"workers": "auto"}, "--workers auto")):
+        options = TrainOptions(config=str(config), results_dir=str(tmp_path), **given)
+        with pytest.raises(TrainingError, match=flag):
+            plan_tune(options, TuneOptions(search=search))
+    with pytest.raises(TrainingError, match="--search: required"):
+        TuneOptions().validate()
+
+
+def test_an_existing_tune_run_is_not_overwritten_without_force(tmp_path):
+    (tmp_path / "results" / "run" / "trials").mkdir(parents=True)
+    with pytest.raises(TrainingError, match="--force"):
+        planned(tmp_path, {LR: {"choice": [1e-3]}})
+
+
+def test_pbt_with_four_trials_on_two_cores(tmp_path):
+    """Steps: 4 trials x 4,000; PBT perturbs every 1,000 (three rounds)."""
+    write(tmp_path / "config.yaml", CONFIG)
+    write(tmp_path / "search.yaml", {LR: {"loguniform": [1e-4, 3e-3]}})
+    registry = tmp_path / "ports"
+    marker = uuid.uuid4().hex
+    command = [
+        sys.executable, "-m", "driver.cli", "tune", "config.yaml", "--search", "search.yaml",
+        "--trials", "4", "--workers", "1", "--cpus", "2", "--max-steps", "4000",
+        "--perturbation-interval", "1000", "--run-id", "pbt", "--seed", "3",
+    ]  # fmt: skip
+    env = {
+        **os.environ,
+        "UNITY_ROLLOUT_TEST_RUN": marker,
+        "UNITY_ROLLOUT_RUNTIME_DIR": str(registry),
+    }
+    ports = PortAllocator(registry_dir=registry)
+    most_at_once = 0  # Unity instances holding a lease at one time, over all trials
+    process = subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    try:
+        deadline = time.monotonic() + 600
+        while process.poll() is None and time.monotonic() < deadline:
+            most_at_once = max(most_at_once, len(ports.leases()))
+            time.sleep(0.5)
+        output = process.communicate(timeout=5)[0]
+    finally:
+        if process.poll() is None:
+            process.kill()
+        assert_run_gone(marker, 60)  # Ray, trials, workers and players all gone
+    assert process.returncode == 0, output[-3000:]
+    assert "tune finished: 4 trials (0 failed)" in output
+    assert most_at_once == 4, "the four trials' instances held their ports side by side"
+    root = tmp_path / "results" / "pbt"
+    with open(root / "trials.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 4
+    exploited = 0
+    for row in rows:
+        assert int(row["steps"]) >= 4000 and row["error"] == ""
+        run_dir = Path(row["run_dir"])
+        pieces = sorted((run_dir / "pieces").glob("*.json"))
+        assert pieces, f"{run_dir}: no stretch ended as a run ends"
+        for piece in pieces:
+            summary = json.loads(piece.read_text())
+            assert summary["ledger"]["balanced"], piece
+            ledger = summary["ledger"]
+            assert ledger["produced"] == ledger["delivered"] + sum(ledger["dropped"].values())
+            assert summary["faults"]["unity_restarts"] == 0, piece  # a port clash would be one
+        for restored in (run_dir / "restored").glob("*/*.pt"):
+            state = torch.load(restored, weights_only=True)
+            (entry,) = state["behaviors"].values()
+            assert entry["algorithm"]["optimizer"]["state"], "the optimizer's moments travel"
+        restores = (run_dir / "restores.jsonl").read_text().splitlines() if pieces[1:] else []
+        assert len(restores) == len(pieces) - 1  # every later stretch began at a checkpoint
+        exploited += sum(json.loads(line)["from"] != run_dir.name for line in restores)
+    assert exploited >= 1, "no trial took another's checkpoint"
+    best = yaml.safe_load((root / "best.yaml").read_text())
+    best_lr = best["behaviors"]["3DBall"]["hyperparameters"]["learning_rate"]
+    assert any(float(row[LR]) == best_lr for row in rows)
+    parse_config(best)
