@@ -121,3 +121,19 @@ def spec_from_dict(data: dict[str, Any]) -> BehaviorSpec:
         for o in data["observations"]
     ]
     return BehaviorSpec(observations, ActionSpec(data["continuous"], tuple(data["discrete"])))
+
+
+def spec_mismatch(found: BehaviorSpec, expected: BehaviorSpec) -> str | None:
+    """What differs in actions or sensor shapes (all ML-Agents compares), or None."""
+    if found.action_spec != expected.action_spec:
+        return f"actions {_actions(found)} do not match the expected {_actions(expected)}"
+    shapes = [o.shape for o in found.observation_specs]
+    wanted = [o.shape for o in expected.observation_specs]
+    if shapes != wanted:
+        return f"observation shapes {shapes} do not match the expected {wanted}"
+    return None
+
+
+def _actions(spec: BehaviorSpec) -> str:
+    a = spec.action_spec
+    return f"(continuous {a.continuous_size}, discrete branches {list(a.discrete_branches)})"

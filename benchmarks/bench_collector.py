@@ -71,7 +71,9 @@ def rate(batches: object, seconds: float, count: object) -> float:
     return steps / (time.perf_counter() - started)
 
 
-def torchrl_rate(player: str, instances: int, delay: float, seconds: float, port: int) -> float:
+def torchrl_rate(
+    player: str, instances: int, delay: float, seconds: float, port: int, frames: int
+) -> float:
     from torchrl.collectors import Collector
     from torchrl.envs import ParallelEnv, SerialEnv, UnityMLAgentsEnv
 
@@ -90,9 +92,7 @@ def torchrl_rate(player: str, instances: int, delay: float, seconds: float, port
     sensor = next(k[2] for k in env.observation_spec.keys(True, True) if len(k) == 3)
     policy = PerAgent(network(), sorted(set(agents)), sensor)
     per_step = len(set(agents))
-    collector = Collector(
-        env, policy, frames_per_batch=max(1, FRAMES_PER_BATCH // per_step), total_frames=-1
-    )
+    collector = Collector(env, policy, frames_per_batch=max(1, frames // per_step), total_frames=-1)
     try:
         return rate(collector, seconds, lambda batch: batch.numel() * per_step)
     finally:
@@ -100,14 +100,14 @@ def torchrl_rate(player: str, instances: int, delay: float, seconds: float, port
         env.close(raise_if_closed=False)
 
 
-def ours_rate(player: str, instances: int, delay: float, seconds: float) -> float:
+def ours_rate(player: str, instances: int, delay: float, seconds: float, frames: int) -> float:
     from rollout.unity import UnityConfig
     from torchrl_adapters import UnityCollector
 
     policy = TensorDictModule(network(), in_keys=["observation"], out_keys=["action"])
     unity = UnityConfig(player, additional_args=("--sim-delay-ms", str(delay)))
     collector = UnityCollector(
-        player, policy, FRAMES_PER_BATCH, behavior="3DBall", num_workers=instances,
+        player, policy, frames, behavior="3DBall", num_workers=instances,
         worker_cpus=min(1.0, 2 / instances), unity=unity,
     )  # fmt: skip
     try:
@@ -121,6 +121,13 @@ def main() -> int:
     parser.add_argument("--instances", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--delays", type=float, nargs="+", default=[0.0, 40.0])
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument(
+        "--per-instance",
+        action="store_true",
+        help=f"{FRAMES_PER_BATCH} agent steps per batch for each instance (a rollout of "
+        "100 exchanges per instance, as on-policy runs size theirs), not for all",
+    )
+    parser.add_argument("--only", choices=["ours", "torchrl"], help="run one side only")
     parser.add_argument("--json", help="write the results here too")
     args = parser.parse_args()
     import ray
@@ -132,11 +139,16 @@ def main() -> int:
             player = build(Path(tmp))
             for delay in args.delays:
                 for instances in args.instances:
-                    ours = ours_rate(player, instances, delay, args.seconds)
-                    theirs = torchrl_rate(player, instances, delay, args.seconds, 35000)
+                    frames = FRAMES_PER_BATCH * (instances if args.per_instance else 1)
+                    ours = theirs = float("nan")
+                    if args.only != "torchrl":
+                        ours = ours_rate(player, instances, delay, args.seconds, frames)
+                    if args.only != "ours":
+                        theirs = torchrl_rate(player, instances, delay, args.seconds, 35000, frames)
                     row = {
                         "delay_ms": delay,
                         "instances": instances,
+                        "frames_per_batch": frames,
                         "ours": round(ours, 1),
                         "torchrl": round(theirs, 1),
                         "ratio": round(ours / theirs, 2),

@@ -16,6 +16,7 @@ from demonstrations.demo_file import (  # noqa: E402
     spec_mismatch,
     write_demo,
 )
+from demonstrations.expert_steps import expert_steps  # noqa: E402
 from demonstrations.records import DemoError, DemoMeta, Demonstration, DemoStep  # noqa: E402
 
 __all__ = [
@@ -24,6 +25,7 @@ __all__ = [
     "DemoStep",
     "Demonstration",
     "demo_files",
+    "expert_steps",
     "read_demo",
     "read_demos",
     "spec_mismatch",

@@ -33,6 +33,7 @@ from mlagents_envs.communicator_objects.agent_info_pb2 import AgentInfoProto
 from mlagents_envs.communicator_objects.brain_parameters_pb2 import BrainParametersProto
 from mlagents_envs.communicator_objects.demonstration_meta_pb2 import DemonstrationMetaProto
 
+from batches.specs import spec_mismatch
 from demonstrations import protos
 from demonstrations.records import DemoError, DemoMeta, Demonstration, DemoStep
 
@@ -96,17 +97,6 @@ def read_demo(path: str | os.PathLike[str], expected: BehaviorSpec | None = None
     return Demonstration(meta, first.behavior_name, first.behavior_spec, steps)
 
 
-def spec_mismatch(found: BehaviorSpec, expected: BehaviorSpec) -> str | None:
-    """What differs in actions or sensor shapes (all ML-Agents compares), or None."""
-    if found.action_spec != expected.action_spec:
-        return f"actions {_actions(found)} do not match the expected {_actions(expected)}"
-    shapes = [o.shape for o in found.observation_specs]
-    wanted = [o.shape for o in expected.observation_specs]
-    if shapes != wanted:
-        return f"observation shapes {shapes} do not match the expected {wanted}"
-    return None
-
-
 def write_demo(path: str | os.PathLike[str], demo: Demonstration, png: Iterable[int] = ()) -> None:
     """Write ``demo`` byte for byte as Unity's recorder would (see the module's docstring).
 
@@ -137,11 +127,6 @@ def write_demo(path: str | os.PathLike[str], demo: Demonstration, png: Iterable[
     except ValueError as error:
         raise DemoError(where, str(error)) from None
     where.write_bytes(bytes(out))
-
-
-def _actions(spec: BehaviorSpec) -> str:
-    a = spec.action_spec
-    return f"(continuous {a.continuous_size}, discrete branches {list(a.discrete_branches)})"
 
 
 def _varint(value: int) -> bytes:

@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from batches.contracts import base_name
+from batches.expert_steps import ExpertSteps
 from driver.declaration import TrainingError, from_settings
 from driver.options import TrainOptions
 from learners.config import DEFAULTS, ConfigError, config_for_env, load_config, parse_config
@@ -102,7 +103,26 @@ def plan(options: TrainOptions) -> Plan:
         )
     if options.env != "editor" and not options.env.startswith(UNITYSIM_PREFIX):
         _resolve(options.env)  # a build path; unitysim's names are checked as it is written
+    read_experts(config)
     return Plan(options, config, run_dir, resume)
+
+
+def read_experts(config: RunConfig) -> dict[str, ExpertSteps]:
+    """The demonstrations of every ``behavioral_cloning`` section, by ``demo_path``; a file
+    that is missing, truncated or corrupt is one line naming it (its spec is checked
+    against the behavior's by the learner, which meets the behavior)."""
+    from demonstrations import DemoError, expert_steps
+
+    experts = {}
+    for name, settings in (*config.behaviors.items(), ("default_settings", config.default)):
+        if (cloning := settings.behavioral_cloning) is None or cloning.demo_path in experts:
+            continue
+        try:
+            experts[cloning.demo_path] = expert_steps(cloning.demo_path)
+        except DemoError as error:
+            where = name if name == "default_settings" else f"behaviors.{name}"
+            raise TrainingError(f"{where}.behavioral_cloning.demo_path: {error}") from None
+    return experts
 
 
 def settle(options: TrainOptions) -> TrainOptions:

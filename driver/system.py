@@ -14,7 +14,7 @@ from driver.curriculum import LessonPlan, lesson_plan
 from driver.declaration import TrainingError
 from driver.learner_keeper import load_into
 from driver.options import TrainOptions
-from driver.run_dir import Start
+from driver.run_dir import Start, read_experts
 from learners.devices import DeviceError, learner_device
 from learners.factory import policy_factory
 from learners.remote import learner_actor
@@ -75,6 +75,7 @@ def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
         device=device,
         mixed_precision=options.mixed_precision,
         inference=options.inference,
+        experts=read_experts(config),
     )
 
 

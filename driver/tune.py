@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import math
+import os
 import random
 import shutil
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from driver.tune_search import Search, check_search, load_search, with_values
 from learners.config import ConfigError, config_for_env, parse_config, read_config_data
 from rollout.builds import UNITYSIM_PREFIX
 
+CHDIR = "RAY_CHDIR_TO_TRIAL_DIR"
 HEAD_CPUS = 0.01  # the trial's own actor: it waits on its run, as the CLI's driver does
 
 
@@ -73,7 +75,7 @@ def plan_tune(options: TrainOptions, tuning: TuneOptions) -> TunePlan:
     except ConfigError as error:
         raise TrainingError(str(error)) from None
     options = settle(from_settings(options, config.run_settings, config.source).validate())
-    # a trial runs in Tune's folder for it: the paths it is given must not be relative
+    # a trial may run on another node, from another folder: its paths are absolute
     build = options.env
     if build != "editor" and not build.startswith(UNITYSIM_PREFIX):
         build = str(Path(build).resolve())
@@ -116,9 +118,13 @@ def tune_run(planned: TunePlan) -> TuneResult:
 
     options = planned.options
     started = not ray.is_initialized()
+    # trials stay where the command runs: relative paths in the config (demo_path,
+    # init_path) mean what they mean to train (Tune would move each into its own folder)
+    stay = {CHDIR: "0"}
     if started and options.address:
-        ray.init(address=options.address, log_to_driver=False)
+        ray.init(address=options.address, log_to_driver=False, runtime_env={"env_vars": stay})
     elif started:
+        os.environ.update(stay)
         init_local_ray(options.cpus)
     try:
         return _fit(planned)

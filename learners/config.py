@@ -8,7 +8,7 @@ so a typo fails with one line naming the dotted key (and the key probably meant)
   hyperparameter, and ``trainer_type: poca`` (running another algorithm instead would
   change the experiment silently).
 - Reported (``RunConfig.unsupported``, one ``logging.warning``): ML-Agents features we lack
-  (memory, curiosity/GAIL/RND, self-play, behavioral cloning, ``threaded``,
+  (memory, curiosity/GAIL/RND, ``threaded``,
   run-level ``env_settings`` ...); training goes on without them. Values that ask for
   what we do anyway (``memory: null``, ``deterministic: false``, ...) are not reported.
   All five of ML-Agents' ``vis_encode_type`` values are implemented (``learners.encoders``).

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
-from learners.settings import SelfPlaySettings
+from learners.settings import BehavioralCloningSettings, SelfPlaySettings
 
 SCHEDULES = ("linear", "constant")
 # ML-Agents' image encoders (learners.encoders builds them; torch-free names here)
@@ -175,9 +176,42 @@ def _self_play(path: str, value: object) -> SelfPlaySettings:
     return SelfPlaySettings(**given)
 
 
+def _behavioral_cloning(path: str, value: object) -> BehavioralCloningSettings:
+    """ML-Agents' ``behavioral_cloning`` section; ``demo_path`` made absolute (the learner
+    reads it, in a process of its own) and checked to exist (``demonstrations`` checks
+    the file itself where the run is planned)."""
+    checks: dict[str, Check] = {
+        "demo_path": _demo_path,
+        "strength": float_in(0),
+        "steps": int_from(0),
+        "samples_per_update": int_from(0),
+        "num_epoch": _optional(POSITIVE_INT),
+        "batch_size": _optional(POSITIVE_INT),
+    }
+    given = {}
+    for key, item in section(path, value).items():
+        if key not in checks:
+            raise unknown_key(path, key, checks)
+        given[key] = checks[key](f"{path}.{key}", item)
+    if "demo_path" not in given:
+        raise ConfigError(f"{path}.demo_path: required (a .demo file or a folder of them)")
+    return BehavioralCloningSettings(**given)
+
+
+def _demo_path(path: str, value: object) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{path}: expected a .demo file or a folder of them, got {show(value)}")
+    return os.path.abspath(os.path.expanduser(value))
+
+
+def _optional(check: Check) -> Check:
+    return lambda path, value: None if value is None else check(path, value)
+
+
 TOP: dict[str, Check] = {
     "init_path": _optional_path,  # a checkpoint to start this behavior from
     "self_play": _self_play,
+    "behavioral_cloning": _behavioral_cloning,
     "max_steps": POSITIVE_INT,
     "time_horizon": POSITIVE_INT,
     "summary_freq": POSITIVE_INT,
@@ -186,7 +220,6 @@ TOP: dict[str, Check] = {
 }
 TOP_UNSUPPORTED: dict[str, object] = {
     "threaded": False,  # workers wait for each update's weights, as unthreaded ML-Agents
-    "behavioral_cloning": None,
     "even_checkpoints": False,
 }
 SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")

@@ -20,7 +20,7 @@ its opponent snapshot.
 from __future__ import annotations
 
 import time
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -28,9 +28,11 @@ import torch
 
 from batches import keys
 from batches.contracts import Weights, base_name
+from batches.expert_steps import ExpertSteps
 from batches.segment import Segment, Sources
 from batches.specs import spec_from_dict
 from learners import checkpoint
+from learners.cloning import BehavioralCloning
 from learners.counters import LearnerStats, all_done, budget, demand
 from learners.devices import Compute, to_cpu
 from learners.factory import policy_factory
@@ -80,6 +82,7 @@ class BehaviorState:
     algorithm: Algorithm
     steps: int = 0  # agent steps received (ML-Agents' "Step")
     updates: list[int] = field(default_factory=list)  # global versions this behavior made
+    cloning: BehavioralCloning | None = None  # behavioral_cloning, after each update
 
 
 class CentralLearner:
@@ -91,13 +94,16 @@ class CentralLearner:
         seed: int = 0,
         compute: Compute | None = None,
         inference: bool = False,
+        experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
+        """``experts``: the demonstrations of ``behavioral_cloning``, by ``demo_path``."""
         if torch_threads is not None:  # the Ray actor shares its node with Unity workers
             torch.set_num_threads(torch_threads)
         self.compute = compute or Compute()
         self.config = config
         self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)
         self.inference = inference  # count the steps, train on none (CLI --inference)
+        self.experts = dict(experts or {})
         self.factory = policy_factory(config, seed)
         self.version = 0
         self.behaviors: dict[str, BehaviorState] = {}
@@ -219,7 +225,11 @@ class CentralLearner:
             self.compute.place(network)
             network.autocast = self.compute.autocast
             self.behaviors[key] = BehaviorState(
-                spec, settings, network, make_algorithm(network, settings, self.compute)
+                spec,
+                settings,
+                network,
+                make_algorithm(network, settings, self.compute),
+                cloning=self._cloning(behavior, spec, settings, network),
             )
         self._keys[behavior] = key
         state = self.behaviors[key]
@@ -228,10 +238,27 @@ class CentralLearner:
             self.self_play.join(brain, team, settings.self_play, numpy_state(state.network))
         return state
 
+    def _cloning(
+        self, behavior: str, spec: dict[str, Any], settings: TrainerSettings, network: ActorCritic
+    ) -> BehavioralCloning | None:
+        """The behavior's cloning from its demonstrations; a one-line error naming the
+        file when they do not fit its spec."""
+        if settings.behavioral_cloning is None:
+            return None
+        path = settings.behavioral_cloning.demo_path
+        if (experts := self.experts.get(path)) is None:
+            raise ValueError(f"behavioral_cloning of {base_name(behavior)}: {path} not loaded")
+        if problem := experts.problem_with(spec_from_dict(spec)):
+            raise ValueError(f"behavioral_cloning of {base_name(behavior)}: {problem}")
+        h, device = settings.hyperparameters, self.compute.torch_device
+        return BehavioralCloning(network, settings.behavioral_cloning, h, experts, device)
+
     def _update(self, behavior: str, state: BehaviorState) -> None:
         started = time.perf_counter()
         # schedules run over the config's max_steps; --max-steps only stops the run early
         report = state.algorithm.update(progress=state.steps / state.settings.max_steps)
+        if state.cloning is not None:
+            report |= state.cloning.update(state.steps)
         self.stats.update_seconds += time.perf_counter() - started
         self.stats.samples += int(report.get("Policy/Samples", 0))
         self.stats.updates += 1

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import os
 import threading
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from batches import keys
@@ -29,6 +30,7 @@ from learners.trainers import trainer
 if TYPE_CHECKING:
     from tensordict import TensorDict
 
+    from batches.expert_steps import ExpertSteps
     from learners.learner import CentralLearner
     from learners.settings import RunConfig
 
@@ -49,6 +51,7 @@ class LearnerHost:
         device: str = "cpu",
         mixed_precision: bool = False,
         inference: bool = False,
+        experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
         self.config, self.max_steps, self.inference = config, max_steps, inference
         self._learner: CentralLearner | None = None
@@ -61,7 +64,16 @@ class LearnerHost:
         self._early_duplicates = 0
         self._builder = threading.Thread(
             target=self._build,
-            args=(config, max_steps, torch_threads, seed, device, mixed_precision, inference),
+            args=(
+                config,
+                max_steps,
+                torch_threads,
+                seed,
+                device,
+                mixed_precision,
+                inference,
+                experts,
+            ),
             daemon=True,
         )
         self._builder.start()
@@ -77,9 +89,9 @@ class LearnerHost:
             from learners.devices import Compute
             from learners.learner import CentralLearner
 
-            config, max_steps, torch_threads, seed, device, mixed_precision, inference = args
+            config, max_steps, threads, seed, device, mixed_precision, inference, experts = args
             compute = Compute.of(device, mixed_precision)
-            learner = CentralLearner(config, max_steps, torch_threads, seed, compute, inference)
+            learner = CentralLearner(config, max_steps, threads, seed, compute, inference, experts)
             learner.prepare()  # the algorithms' modules (torchrl) before the first data
             self._learner = learner
         except BaseException as error:  # raised by the next call that needs the learner
@@ -191,6 +203,7 @@ def learner_actor(
     device: str = "cpu",
     mixed_precision: bool = False,
     inference: bool = False,
+    experts: Mapping[str, ExpertSteps] | None = None,
 ) -> Any:
     """Start the learner as a Ray actor (Ray imported here: the class itself needs none).
     ``device`` other than cpu: the actor asks Ray for one GPU (``learners.devices``'s
@@ -226,4 +239,6 @@ def learner_actor(
 
     remote = ray.remote(concurrency_groups={"status": 1})(RayLearner)
     remote = remote.options(num_cpus=num_cpus, num_gpus=0 if device == "cpu" else 1)
-    return remote.remote(config, max_steps, torch_threads, seed, device, mixed_precision, inference)
+    return remote.remote(
+        config, max_steps, torch_threads, seed, device, mixed_precision, inference, experts
+    )

@@ -77,6 +77,18 @@ class SelfPlaySettings:
 
 
 @dataclass(frozen=True)
+class BehavioralCloningSettings:
+    """ML-Agents' ``behavioral_cloning`` section (its defaults): ``learners/cloning.py``."""
+
+    demo_path: str  # a .demo file or a folder of them, made absolute when the config is read
+    strength: float = 1.0  # the cloning learning rate is learning_rate x strength
+    steps: int = 0  # steps over which that rate decays linearly to 0 (0: it stays)
+    samples_per_update: int = 0  # demonstration steps per update (0: all of them)
+    num_epoch: int | None = None  # None: 3, as ML-Agents' cloning module defaults it
+    batch_size: int | None = None  # None: hyperparameters.batch_size
+
+
+@dataclass(frozen=True)
 class TrainerSettings:
     """The settings of one behavior, resolved (nothing left to merge)."""
 
@@ -92,6 +104,7 @@ class TrainerSettings:
     keep_checkpoints: int = 5
     init_path: str | None = None  # a checkpoint (file or folder) this behavior starts from
     self_play: SelfPlaySettings | None = None  # None: no self-play
+    behavioral_cloning: BehavioralCloningSettings | None = None
 
 
 @dataclass(frozen=True)

@@ -342,7 +342,6 @@ torch_settings: {device: cpu}
         config = parse(text)
     assert set(config.unsupported) == {
         "default_settings.threaded",
-        "behaviors.Pyramids.behavioral_cloning",
         "behaviors.Pyramids.network_settings.memory",
         "behaviors.Pyramids.reward_signals.curiosity",
         "behaviors.Pyramids.reward_signals.rnd",
@@ -358,6 +357,8 @@ torch_settings: {device: cpu}
     assert dict(config.engine) == {"time_scale": 20.0, "width": 84, "no_graphics": True}
     assert config.for_behavior("Pyramids").gamma == 0.99
     assert config.for_behavior("Pyramids").init_path == "results/old"  # driver/run_dir.py
+    cloning = config.for_behavior("Pyramids").behavioral_cloning
+    assert cloning is not None and cloning.demo_path == str(Path("x.demo").resolve())
     assert config.for_behavior("Pyramids").network_settings.vis_encode_type == "resnet"
     assert config.run_settings["env_settings"] == {"num_envs": 4}  # the driver's options
 
