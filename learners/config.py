@@ -34,6 +34,8 @@ from learners.config_keys import (
     ENGINE,
     ENGINE_UNSUPPORTED,
     EXTRINSIC,
+    INTRINSIC,
+    INTRINSIC_TRAINERS,
     NETWORK,
     NETWORK_UNSUPPORTED,
     REWARD_UNSUPPORTED,
@@ -44,13 +46,14 @@ from learners.config_keys import (
     TOP,
     TOP_UNSUPPORTED,
     ConfigError,
+    intrinsic_signal,
     section,
     show,
     unknown_key,
 )
 from learners.config_parameters import parse_environment_parameters
 from learners.devices import DeviceError, check_device
-from learners.settings import RunConfig, TrainerSettings
+from learners.settings import RewardSignalSettings, RunConfig, TrainerSettings
 from learners.trainers import TRAINERS
 
 logger = logging.getLogger(__name__)
@@ -90,6 +93,7 @@ class _Layer:
     hyper: dict[str, Any] = field(default_factory=dict)
     network: dict[str, Any] = field(default_factory=dict)
     extrinsic: dict[str, Any] = field(default_factory=dict)
+    intrinsic: dict[str, RewardSignalSettings] = field(default_factory=dict)
     signals: set[str] | None = None  # the reward signals it names (None: no reward_signals)
     top: dict[str, Any] = field(default_factory=dict)
 
@@ -146,7 +150,13 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
     if "reward_signals" in data:
         layer.signals = set(section(reward_path, data["reward_signals"]))
     for key, value in section(reward_path, data.get("reward_signals")).items():
-        if key in REWARD_UNSUPPORTED:
+        if key in INTRINSIC:
+            signal = intrinsic_signal(f"{reward_path}.{key}", key, value)
+            if trainer_type in INTRINSIC_TRAINERS:
+                layer.intrinsic[key] = signal
+            else:
+                unsupported.append(f"{reward_path}.{key}")
+        elif key in REWARD_UNSUPPORTED:
             unsupported.append(f"{reward_path}.{key}")
         elif key == "extrinsic":
             signal_path = f"{reward_path}.extrinsic"
@@ -158,7 +168,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
                 else:
                     raise unknown_key(signal_path, name, {*EXTRINSIC, "network_settings"})
         else:
-            raise unknown_key(reward_path, key, {"extrinsic", *REWARD_UNSUPPORTED})
+            raise unknown_key(reward_path, key, {"extrinsic", *INTRINSIC, *REWARD_UNSUPPORTED})
     return layer
 
 
@@ -175,8 +185,10 @@ def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSetti
     hyper: dict[str, Any] = {}
     network: dict[str, Any] = {}
     extrinsic: dict[str, Any] = {}
+    intrinsic: dict[str, RewardSignalSettings] = {}
     top: dict[str, Any] = {}
     for layer in layers:
+        intrinsic.update(layer.intrinsic)
         hyper.update(
             (k, v) for k, v in layer.hyper.items() if k in TRAINERS[trainer_type].hyperparameters
         )
@@ -194,6 +206,7 @@ def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSetti
         reward_strength=extrinsic.get("strength", base.reward_strength)
         if "extrinsic" in signals
         else 0.0,
+        reward_signals=tuple(v for k, v in intrinsic.items() if k in signals),
         **top,
     )
     h = settings.hyperparameters

@@ -11,7 +11,12 @@ import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
-from learners.settings import BehavioralCloningSettings, SelfPlaySettings
+from learners.settings import (
+    BehavioralCloningSettings,
+    NetworkSettings,
+    RewardSignalSettings,
+    SelfPlaySettings,
+)
 
 SCHEDULES = ("linear", "constant")
 # ML-Agents' image encoders (learners.encoders builds them; torch-free names here)
@@ -208,6 +213,37 @@ def _optional(check: Check) -> Check:
     return lambda path, value: None if value is None else check(path, value)
 
 
+INTRINSIC = ("curiosity", "rnd")  # reward signals we implement besides extrinsic (PPO)
+INTRINSIC_TRAINERS = ("ppo",)
+INTRINSIC_RATE = {"curiosity": 3.0e-4, "rnd": 1.0e-4}  # ML-Agents' default learning_rate
+
+
+def intrinsic_signal(path: str, kind: str, value: object) -> RewardSignalSettings:
+    """A curiosity or rnd section: ``gamma``, ``strength``, ``learning_rate``,
+    ``encoding_size`` and the signal's own ``network_settings`` (ML-Agents' defaults)."""
+    checks: dict[str, Check] = {
+        "gamma": float_in(0, 1, open_low=True),
+        "strength": float_in(0),
+        "learning_rate": POSITIVE,
+        "encoding_size": _optional(POSITIVE_INT),
+    }
+    given: dict[str, Any] = {"learning_rate": INTRINSIC_RATE[kind]}
+    for key, item in section(path, value).items():
+        if key == "network_settings":
+            network = {}
+            for name, setting in section(f"{path}.{key}", item).items():
+                if name in NETWORK:
+                    network[name] = NETWORK[name](f"{path}.{key}.{name}", setting)
+                elif name != "memory" or setting is not None:  # ML-Agents ignores it too
+                    raise unknown_key(f"{path}.{key}", name, NETWORK)
+            given[key] = NetworkSettings(**network)
+        elif key in checks:
+            given[key] = checks[key](f"{path}.{key}", item)
+        else:
+            raise unknown_key(path, key, {*checks, "network_settings"})
+    return RewardSignalSettings(kind, **given)
+
+
 TOP: dict[str, Check] = {
     "init_path": _optional_path,  # a checkpoint to start this behavior from
     "self_play": _self_play,
@@ -224,7 +260,7 @@ TOP_UNSUPPORTED: dict[str, object] = {
 }
 SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")
 EXTRINSIC: dict[str, Check] = {"gamma": float_in(0, 1, open_low=True), "strength": float_in(0)}
-REWARD_UNSUPPORTED = ("curiosity", "gail", "rnd")
+REWARD_UNSUPPORTED = ("gail",)
 ENGINE: dict[str, Check] = {
     "time_scale": POSITIVE,
     "width": POSITIVE_INT,

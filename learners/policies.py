@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
 from typing import Any
 
@@ -211,9 +211,15 @@ class ActorCritic(nn.Module):
         """V(obs) with the batch dims kept (no trailing 1)."""
         return self.value_of(self.encode(obs))
 
-    def value_of(self, encoded: torch.Tensor) -> torch.Tensor:
-        """V from already encoded observations (``encode``'s output)."""
-        return self.value(self.critic_trunk(encoded)).squeeze(-1)
+    def value_of(self, encoded: torch.Tensor, heads: Sequence[nn.Module] = ()) -> torch.Tensor:
+        """V from already encoded observations (``encode``'s output); with ``heads`` (an
+        intrinsic signal's value head each, ``learners/intrinsic.py``) ``[..., 1 + H]``,
+        the extrinsic value first."""
+        critic = self.critic_trunk(encoded)
+        value = self.value(critic)
+        if not heads:
+            return value.squeeze(-1)
+        return torch.cat([value, *(head(critic) for head in heads)], dim=-1)
 
     def unity_action(self, continuous: torch.Tensor) -> torch.Tensor:
         """The continuous action Unity receives for a stored one (squashed: as it is)."""
@@ -280,6 +286,7 @@ class ActorCritic(nn.Module):
         continuous: torch.Tensor | None,
         discrete: torch.Tensor | None,
         mask: torch.Tensor | None = None,
+        heads: Sequence[nn.Module] = (),
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(log-probs [..., c + branches] as ``act`` gives them, entropy, value) of given
         actions under the current weights (what PPO's loss needs); batch dims are kept.
@@ -315,7 +322,7 @@ class ActorCritic(nn.Module):
                 # masked entries add 0 (and no NaN gradient: 0 * -inf never happens)
                 finite = torch.where(branch.isfinite(), branch, 0.0)
                 entropy = entropy - (branch.exp() * finite).sum(-1)
-        return torch.cat(log_probs, dim=-1), entropy, self.value_of(encoded)
+        return torch.cat(log_probs, dim=-1), entropy, self.value_of(encoded, heads)
 
 
 class TorchActor:

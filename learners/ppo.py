@@ -41,6 +41,7 @@ from torchrl.objectives.value.functional import vec_generalized_advantage_estima
 
 from learners.counters import on_policy_wanted
 from learners.devices import Compute
+from learners.intrinsic import Signals
 from learners.minibatch import (
     REPORTED,
     MinibatchStep,
@@ -142,8 +143,12 @@ class PPO:
         self.network, self.settings = network, settings
         self.compute = compute or Compute()
         h = settings.hyperparameters
+        device = self.compute.torch_device
+        self.signals = Signals(network, settings.reward_signals, device)
         self.optimizer = adam(self.trained_parameters(), h.learning_rate, self.compute)
-        self.store = TrajectoryStore(h.buffer_size, self.compute.torch_device, self.groupmates)
+        self.store = TrajectoryStore(
+            h.buffer_size, device, self.groupmates, terminal_obs=bool(self.signals)
+        )
         self.step = MinibatchStep(
             self._minibatch_loss, self.optimizer, h.batch_size, self.compute, self.reported
         )
@@ -152,7 +157,9 @@ class PPO:
         self.stale_steps = 0
 
     def trained_parameters(self) -> list[torch.nn.Parameter]:
-        return list(self.network.parameters())
+        """The network's, and the intrinsic signals' value heads (their own networks have
+        optimizers of their own)."""
+        return [*self.network.parameters(), *self.signals.heads.parameters()]
 
     # --- data in ------------------------------------------------------------------------
 
@@ -186,12 +193,18 @@ class PPO:
         self.step.start(self._bind(advantage, value_target), epsilon, beta)
         self.epochs(train)
         mean = self.step.means()
+        h = self.settings.hyperparameters
+        signals = self.signals.train(train, h.num_epoch, h.batch_size)
         return {
+            **signals,
+            **self.signals.report(value, train),
             **actor_critic_report(mean, lr, beta),
             "Policy/Epsilon": epsilon,
             "Policy/Clip Fraction": mean.get("clip_fraction", 0.0),
             "Policy/Approx KL": mean.get("kl_approx", 0.0),
-            "Policy/Extrinsic Value Estimate": float(value[train].mean()),
+            "Policy/Extrinsic Value Estimate": float(
+                value[train].reshape(len(train), -1)[:, 0].mean()
+            ),
             "Policy/Stale Steps Dropped": float(self.stale_steps),
             "Policy/Samples": float(len(train)),
         }
@@ -219,12 +232,14 @@ class PPO:
     def _bind(self, advantage: torch.Tensor, value_target: torch.Tensor) -> tuple[int, ...]:
         """Point ``self._bound`` at the store's whole columns, with this update's advantages
         and targets copied into buffers beside them; returns the addresses a graph reads."""
-        whole = self.store.whole()
+        whole, heads = self.store.whole(), 1 + len(self.signals)
         if self._targets is None or self._targets.shape[1] != len(whole):
-            self._targets = torch.zeros(2, len(whole), device=self.compute.torch_device)
+            shape = (1 + heads, len(whole))
+            self._targets = torch.zeros(shape, device=self.compute.torch_device)
         self._targets[0, : len(advantage)] = advantage
-        self._targets[1, : len(value_target)] = value_target
-        self._bound = Steps.of(whole, self._targets[0], self._targets[1])
+        self._targets[1:, : len(value_target)] = value_target.reshape(len(value_target), -1).T
+        targets = self._targets[1] if heads == 1 else self._targets[1:].T  # [N] or [N, heads]
+        self._bound = Steps.of(whole, self._targets[0], targets)
         fields = (*whole.obs.values(), whole.continuous, whole.discrete, whole.mask)
         tensors = [t for t in (*fields, whole.log_prob, self._targets) if t is not None]
         return tuple(t.data_ptr() for t in tensors)
@@ -240,41 +255,66 @@ class PPO:
         (torchrl's vectorized estimator), which stops at ``done`` and bootstraps from the
         next observation unless ``terminated``; a step's next value is the next row's,
         except at a truncated end, where it is its kept next observation's."""
-        value = self.values(rows.obs)
+        value = self.values(rows.obs)  # [N, 1 + intrinsic signals]
         next_value = torch.zeros_like(value)
         next_value[:-1] = value[1:]
         next_value[rows.end_rows] = self.values(rows.end_obs)
-        reward = rows.reward * self.settings.reward_strength
-        advantage, target = self.gae(rows, value, next_value, reward)
-        return value, advantage, target
+        advantage, targets = torch.zeros_like(value[:, 0]), []
+        extrinsic = (rows.reward * self.settings.reward_strength, self.settings.gamma)
+        signals = self.signals.rewards(rows)  # (reward, gamma) each, after the extrinsic
+        for k, (reward, gamma) in enumerate([extrinsic, *signals]):
+            # intrinsic signals bootstrap at an episode's end (ML-Agents' ignore_done)
+            terminated = rows.terminated if k == 0 else torch.zeros_like(rows.terminated)
+            gained, target = self.gae(
+                rows, value[:, k], next_value[:, k], reward, gamma, terminated
+            )
+            advantage += gained  # ML-Agents sums the signals' advantages
+            targets.append(target)
+        if len(targets) == 1:  # the extrinsic signal alone: [N] each
+            return value[:, 0], advantage, targets[0]
+        return value, advantage, torch.stack(targets, dim=-1)
 
     def gae(
-        self, rows: Rows, value: torch.Tensor, next_value: torch.Tensor, reward: torch.Tensor
+        self,
+        rows: Rows,
+        value: torch.Tensor,
+        next_value: torch.Tensor,
+        reward: torch.Tensor,
+        gamma: float | None = None,
+        terminated: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """torchrl's vectorized GAE along the packed trajectories: (advantage, target)."""
+        """torchrl's vectorized GAE along the packed trajectories: (advantage, target);
+        the extrinsic signal's gamma and ends unless given."""
+        terminated = rows.terminated if terminated is None else terminated
         advantage, target = vec_generalized_advantage_estimate(
-            self.settings.gamma,
+            self.settings.gamma if gamma is None else gamma,
             self.settings.hyperparameters.lambd,
             value.unsqueeze(-1),
             next_value.unsqueeze(-1),
             reward.unsqueeze(-1),
             rows.done.unsqueeze(-1),
-            rows.terminated.unsqueeze(-1),
+            terminated.unsqueeze(-1),
             time_dim=-2,
         )
         return advantage.squeeze(-1), target.squeeze(-1)
 
     def values(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """V of many rows, in chunks of about ``VALUE_CHUNK_BYTES`` of float input, so a
-        large observation is never converted whole."""
+        """V of many rows, ``[N, 1 + intrinsic signals]``, in chunks of about
+        ``VALUE_CHUNK_BYTES`` of float input, so a large observation is never converted
+        whole."""
         rows = len(next(iter(obs.values())))
         width = sum(math.prod(o.shape[1:]) for o in obs.values()) * 4  # bytes as float32
         chunk = max(1, VALUE_CHUNK_BYTES // max(width, 1))
+        heads = self.signals.heads
         parts = [
-            self.network.state_value({n: o[i : i + chunk] for n, o in obs.items()})
+            self.network.value_of(
+                self.network.encode({n: o[i : i + chunk] for n, o in obs.items()}), heads
+            )
             for i in range(0, rows, chunk)
         ]
-        return torch.cat(parts) if parts else torch.zeros(0, device=self.compute.torch_device)
+        if not parts:
+            return torch.zeros(0, 1 + len(heads), device=self.compute.torch_device)
+        return torch.cat(parts).reshape(rows, -1)  # [N, 1 + intrinsic signals]
 
     def loss(
         self, steps: Steps, epsilon: float | torch.Tensor, beta: float | torch.Tensor
@@ -283,7 +323,7 @@ class PPO:
         value error (weight 0.5), entropy bonus (weight ``beta``); epsilon and beta may be
         0-dim tensors (a CUDA graph reads them there)."""
         log_prob, entropy, value = self.network.evaluate(
-            steps.obs, steps.continuous, steps.discrete, steps.mask
+            steps.obs, steps.continuous, steps.discrete, steps.mask, self.signals.heads
         )
         terms = policy_terms(log_prob, entropy, steps, epsilon, beta)
         value_loss = (steps.value_target - value).square()
@@ -297,9 +337,12 @@ class PPO:
 
     def state_dict(self) -> dict[str, Any]:
         optimizer = plain_learning_rates(self.optimizer.state_dict())
-        return {"optimizer": optimizer, "stale_steps": self.stale_steps}
+        state = {"optimizer": optimizer, "stale_steps": self.stale_steps}
+        return state | ({"signals": self.signals.state_dict()} if self.signals else {})
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if self.signals:
+            self.signals.load_state_dict(state["signals"])
         load_optimizer(self.optimizer, state["optimizer"])
         self.step.drop_graph()
         self.stale_steps = int(state.get("stale_steps", 0))

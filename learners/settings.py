@@ -77,6 +77,20 @@ class SelfPlaySettings:
 
 
 @dataclass(frozen=True)
+class RewardSignalSettings:
+    """One of ``reward_signals`` besides ``extrinsic`` (``learners/intrinsic.py``), with
+    ML-Agents' defaults; each has its own value head and gamma."""
+
+    kind: str  # "curiosity" | "rnd"
+    gamma: float = 0.99
+    strength: float = 1.0
+    # the signal's own networks (ML-Agents' NetworkSettings defaults), not the policy's
+    network_settings: NetworkSettings = field(default_factory=NetworkSettings)
+    learning_rate: float = 3.0e-4  # rnd: 1e-4
+    encoding_size: int | None = None  # read as ML-Agents 1.1.0 reads it: not used
+
+
+@dataclass(frozen=True)
 class BehavioralCloningSettings:
     """ML-Agents' ``behavioral_cloning`` section (its defaults): ``learners/cloning.py``."""
 
@@ -105,6 +119,7 @@ class TrainerSettings:
     init_path: str | None = None  # a checkpoint (file or folder) this behavior starts from
     self_play: SelfPlaySettings | None = None  # None: no self-play
     behavioral_cloning: BehavioralCloningSettings | None = None
+    reward_signals: tuple[RewardSignalSettings, ...] = ()  # besides extrinsic (PPO)
 
 
 @dataclass(frozen=True)

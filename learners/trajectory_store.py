@@ -9,7 +9,8 @@ the buffer is *over* ``buffer_size``, and the segment that tips it over is store
 Observations are kept once. Within a trajectory the next observation of a step is the
 observation of the step after it, so ``("next", "obs")`` is kept only where a trajectory
 ends without ``terminated`` (a horizon cut, MaxStep): there the estimator bootstraps from
-it. A terminated end bootstraps with 0 and needs none. ML-Agents' buffer keeps one copy too.
+it. A terminated end bootstraps with 0 and needs none, unless an intrinsic signal reads
+it (``terminal_obs``). ML-Agents' buffer keeps one copy too.
 
 The reward kept is the extrinsic signal's (``learners/rewards.py``: the group reward added).
 With ``groupmates`` (POCA) the store also keeps each step's groupmates (``rollout.groups``),
@@ -70,9 +71,16 @@ class TrajectoryStore:
     """Preallocated columns; ``add`` appends a segment, ``take`` hands all rows over."""
 
     def __init__(
-        self, buffer_size: int, device: torch.device | str = "cpu", groupmates: bool = False
+        self,
+        buffer_size: int,
+        device: torch.device | str = "cpu",
+        groupmates: bool = False,
+        terminal_obs: bool = False,
     ) -> None:
+        """``terminal_obs``: keep the next observation at terminated ends too (intrinsic
+        signals bootstrap there and read it)."""
         self.buffer_size = buffer_size
+        self.terminal_obs = terminal_obs
         self.device = torch.device(device)
         self.groupmates = groupmates
         self.places = 0  # groupmate places kept per step
@@ -88,7 +96,8 @@ class TrajectoryStore:
         if keep is None:
             keep = torch.ones(count, dtype=torch.bool)
         fields = self._fields(segment, keep)
-        ends = (fields["done"] & ~fields["terminated"]).nonzero().squeeze(-1)
+        kept = fields["done"] if self.terminal_obs else fields["done"] & ~fields["terminated"]
+        ends = kept.nonzero().squeeze(-1)
         next_obs = {"obs/" + n: v[ends] for n, v in segment[keys.NEXT, keys.OBS].items()}
         if self.groupmates:
             after = segment[keys.NEXT, keys.GROUPMATES, keys.OBS]

@@ -343,13 +343,11 @@ torch_settings: {device: cpu}
     assert set(config.unsupported) == {
         "default_settings.threaded",
         "behaviors.Pyramids.network_settings.memory",
-        "behaviors.Pyramids.reward_signals.curiosity",
-        "behaviors.Pyramids.reward_signals.rnd",
     }
     assert len(config.unsupported) == len(set(config.unsupported))
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1
-    assert "behaviors.Pyramids.reward_signals.curiosity" in warnings[0].getMessage()
+    assert "behaviors.Pyramids.network_settings.memory" in warnings[0].getMessage()
     values = {k: v[0].value for k, v in config.environment_parameters.items()}  # one lesson
     assert values == {"mass": Constant(1.5), "scale": Constant(1.0), "wall": Constant(1.0)} | {
         "gravity": Uniform(7.0, 12.0, UNSEEDED)  # the driver seeds it from the run's seed

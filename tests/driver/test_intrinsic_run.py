@@ -1,0 +1,52 @@
+"""ML-Agents' ``ppo/Pyramids.yaml`` (curiosity) and ``ppo/PyramidsRND.yaml`` (RND), their
+summaries every 1,000 steps, past their first update on unitysim Pyramids in local
+2-core mode: each signal's reward, value estimate and losses reach TensorBoard under
+ML-Agents' tags."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from driver.options import TrainOptions
+from driver.train import train
+
+pytestmark = pytest.mark.integration
+
+CONFIGS = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo"
+
+
+@pytest.mark.parametrize(
+    ("config", "tags"),
+    [
+        (
+            "Pyramids.yaml",
+            ("Curiosity Reward", "Curiosity Value Estimate", "Curiosity Forward Loss"),
+        ),
+        ("PyramidsRND.yaml", ("Rnd Reward", "Rnd Value Estimate", "RND Loss")),
+    ],
+)
+def test_an_intrinsic_signal_trains_beside_the_extrinsic_one(ray_session, tmp_path, config, tags):
+    data = yaml.safe_load((CONFIGS / config).read_text())
+    data["behaviors"]["Pyramids"]["summary_freq"] = 1000
+    path = tmp_path / config
+    path.write_text(yaml.safe_dump(data))
+    options = TrainOptions(
+        env="unitysim:Pyramids",
+        config=str(path),
+        results_dir=str(tmp_path),
+        run_id="signal",
+        max_steps=8_200,  # buffer_size 2048: updates, with summaries between them
+        workers=1,
+        progress=False,
+    )
+    result = train(options)
+    assert not result.interrupted
+    events = EventAccumulator(str(result.run_dir / "Pyramids")).Reload()
+    scalars = events.Tags()["scalars"]
+    for tag in tags:
+        assert any(s.endswith(tag) for s in scalars), (tag, scalars)
+    assert "Policy/Extrinsic Value Estimate" in scalars

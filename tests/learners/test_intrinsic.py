@@ -1,0 +1,135 @@
+"""Intrinsic reward signals (``curiosity``, ``rnd``): read from the config with ML-Agents'
+defaults, each signal's reward falling where it has trained (and not elsewhere), and PPO
+giving each its own value head, gamma and bootstrap at an episode's end."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from learners.config import ConfigError, parse_config
+from learners.intrinsic import RND, Curiosity, Transitions
+from learners.policies import ActorCritic
+from learners.ppo import PPO
+from learners.settings import Hyperparameters, NetworkSettings, RewardSignalSettings
+from tests.learners.fakes import segment, vector_spec
+
+SMALL = NetworkSettings(hidden_units=32, num_layers=2)
+
+
+def config(signals: dict, trainer: str = "ppo"):
+    return parse_config({"behaviors": {"B": {"trainer_type": trainer, "reward_signals": signals}}})
+
+
+def test_signals_are_read_with_ml_agents_defaults():
+    b = config({"extrinsic": {}, "curiosity": {}, "rnd": {"strength": 0.01}}).behaviors["B"]
+    curiosity, rnd = b.reward_signals
+    assert (curiosity.kind, curiosity.learning_rate, curiosity.strength) == ("curiosity", 3e-4, 1.0)
+    assert (rnd.kind, rnd.learning_rate, rnd.strength) == ("rnd", 1e-4, 0.01)
+    assert rnd.network_settings == NetworkSettings()  # its own, ML-Agents' defaults
+    custom = config({"rnd": {"network_settings": {"hidden_units": 64, "num_layers": 3}}})
+    (rnd,) = custom.behaviors["B"].reward_signals
+    assert (rnd.network_settings.hidden_units, rnd.network_settings.num_layers) == (64, 3)
+    assert custom.behaviors["B"].reward_strength == 0.0  # no extrinsic named: none trained
+
+
+def test_signals_of_other_trainers_are_reported_and_a_bad_key_is_an_error():
+    sac = config({"extrinsic": {}, "curiosity": {}}, trainer="sac")
+    assert sac.unsupported == ("behaviors.B.reward_signals.curiosity",)
+    assert sac.behaviors["B"].reward_signals == ()
+    with pytest.raises(ConfigError, match=r"reward_signals.rnd.strenght: unknown key"):
+        config({"rnd": {"strenght": 0.1}})
+    with pytest.raises(ConfigError, match=r"reward_signals.curiosity.gamma"):
+        config({"curiosity": {"gamma": 1.5}})
+
+
+def steps(obs: torch.Tensor, after: torch.Tensor, discrete: torch.Tensor) -> Transitions:
+    return Transitions({"vector": obs}, {"vector": after}, None, discrete)
+
+
+def test_rnd_rewards_fall_where_it_trained_only():
+    torch.manual_seed(0)
+    spec = vector_spec(4, branches=(2,))
+    rnd = RND(spec, RewardSignalSettings("rnd", network_settings=SMALL, learning_rate=1e-3))
+    seen = torch.randn(256, 4) * 0.1
+    unseen = torch.randn(256, 4) * 0.1 + 3.0
+    zeros = torch.zeros(256, 1, dtype=torch.int64)
+    before = rnd.rewards(steps(seen, seen, zeros)).mean()
+    for _ in range(300):
+        rnd.update(steps(seen, seen, zeros))
+    assert rnd.rewards(steps(seen, seen, zeros)).mean() < before / 10
+    assert (
+        rnd.rewards(steps(unseen, unseen, zeros)).mean()
+        > 10 * rnd.rewards(steps(seen, seen, zeros)).mean()
+    )
+
+
+def test_curiosity_learns_a_transition_and_caps_its_reward():
+    torch.manual_seed(0)
+    spec = vector_spec(4, branches=(2,))
+    settings = RewardSignalSettings("curiosity", strength=0.5, network_settings=SMALL)
+    curiosity = Curiosity(spec, settings)
+    obs = torch.randn(256, 4)
+    action = torch.randint(0, 2, (256, 1))
+    after = obs.roll(1, dims=-1) + action.float()  # the action decides the next state
+    batch = steps(obs, after, action)
+    assert torch.equal(curiosity.rewards(batch), torch.zeros(256))  # 0 before it updates
+    first = curiosity.update(batch)
+    assert float(curiosity.rewards(batch).max()) <= 1 / 0.5  # capped at 1 / strength
+    for _ in range(300):
+        last = curiosity.update(batch)
+    assert last["Losses/Curiosity Forward Loss"] < first["Losses/Curiosity Forward Loss"] / 5
+    assert last["Losses/Curiosity Inverse Loss"] < first["Losses/Curiosity Inverse Loss"] / 2
+
+
+def ppo_with(signals: tuple[RewardSignalSettings, ...]) -> PPO:
+    torch.manual_seed(0)
+    spec = vector_spec(4, branches=(2,))
+    settings = parse_config({}).default
+    settings = type(settings)(
+        hyperparameters=Hyperparameters(batch_size=8, buffer_size=16, num_epoch=1),
+        network_settings=SMALL,
+        reward_signals=signals,
+    )
+    return PPO(ActorCritic(spec, SMALL), settings)
+
+
+def test_each_signal_has_its_value_head_and_bootstraps_at_an_episodes_end():
+    rnd = RewardSignalSettings("rnd", gamma=0.9, strength=0.5, network_settings=SMALL)
+    ppo = ppo_with((rnd,))
+    batch = segment(vector_spec(4, branches=(2,)), rows=2, steps=8)
+    batch["next", "terminated"][7] = True  # the first trajectory ends its episode
+    ppo.add(batch, torch.zeros(16, dtype=torch.int64))
+    rows = ppo.store.take()
+    with torch.no_grad():
+        value, _, target = ppo.estimate(rows)
+        assert value.shape == target.shape == (16, 2)
+        end = {"vector": batch["next", "obs", "vector"][7:8]}
+        end_value = ppo.network.value_of(ppo.network.encode(end), ppo.signals.heads)[0]
+        intrinsic = ppo.signals.items[0].rewards(
+            Transitions({"vector": rows.obs["vector"][7:8]}, end, None, None)
+        )
+    reward = rows.reward[7]
+    assert float(target[7, 0]) == pytest.approx(float(reward))  # extrinsic: 0 past the end
+    expected = 0.5 * float(intrinsic[0]) + 0.9 * float(end_value[1])  # rnd: bootstraps
+    assert float(target[7, 1]) == pytest.approx(expected, rel=1e-4)
+
+
+def test_an_update_trains_the_signal_and_reports_ml_agents_tags():
+    ppo = ppo_with((RewardSignalSettings("curiosity", network_settings=SMALL),))
+    ppo.add(segment(vector_spec(4, branches=(2,)), rows=3, steps=8), torch.zeros(24).long())
+    report = ppo.update(progress=0.1)
+    for tag in (
+        "Losses/Curiosity Forward Loss",
+        "Losses/Curiosity Inverse Loss",
+        "Policy/Curiosity Value Estimate",
+        "Policy/Curiosity Reward",
+        "Policy/Extrinsic Value Estimate",
+    ):
+        assert tag in report, tag
+    state = ppo.state_dict()
+    again = ppo_with((RewardSignalSettings("curiosity", network_settings=SMALL),))
+    again.load_state_dict(state)
+    heads = zip(ppo.signals.heads.parameters(), again.signals.heads.parameters(), strict=True)
+    assert all(torch.equal(mine, theirs) for mine, theirs in heads)
+    assert again.signals.items[0].updated
