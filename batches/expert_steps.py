@@ -20,6 +20,7 @@ class ExpertSteps:
     observations: tuple[np.ndarray, ...]  # per sensor, [N, *shape] float32
     continuous: np.ndarray  # [N, continuous size] float32, in Unity's range
     discrete: np.ndarray  # [N, branches] int64
+    done: np.ndarray  # [N] bool: the step ended its episode (the next record is terminal)
 
     def __len__(self) -> int:
         return len(self.continuous)

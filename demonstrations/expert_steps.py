@@ -32,4 +32,5 @@ def expert_steps(path: str | os.PathLike[str]) -> ExpertSteps:
         continuous[row, : len(picked)] = picked
         chosen = step.discrete[: len(actions.discrete_branches)]
         discrete[row, : len(chosen)] = chosen
-    return ExpertSteps(str(path), spec, observations, continuous, discrete)
+    done = np.array([s.done for s in demo.steps[1:]], dtype=bool)
+    return ExpertSteps(str(path), spec, observations, continuous, discrete, done)

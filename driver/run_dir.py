@@ -108,20 +108,24 @@ def plan(options: TrainOptions) -> Plan:
 
 
 def read_experts(config: RunConfig) -> dict[str, ExpertSteps]:
-    """The demonstrations of every ``behavioral_cloning`` section, by ``demo_path``; a file
-    that is missing, truncated or corrupt is one line naming it (its spec is checked
-    against the behavior's by the learner, which meets the behavior)."""
+    """The demonstrations of every ``behavioral_cloning`` and ``gail`` section, by
+    ``demo_path``; a file that is missing, truncated or corrupt is one line naming it (its
+    spec is checked against the behavior's by the learner, which meets the behavior)."""
     from demonstrations import DemoError, expert_steps
 
-    experts = {}
+    experts: dict[str, ExpertSteps] = {}
     for name, settings in (*config.behaviors.items(), ("default_settings", config.default)):
-        if (cloning := settings.behavioral_cloning) is None or cloning.demo_path in experts:
-            continue
-        try:
-            experts[cloning.demo_path] = expert_steps(cloning.demo_path)
-        except DemoError as error:
-            where = name if name == "default_settings" else f"behaviors.{name}"
-            raise TrainingError(f"{where}.behavioral_cloning.demo_path: {error}") from None
+        where = name if name == "default_settings" else f"behaviors.{name}"
+        paths = [(f"{where}.behavioral_cloning", settings.behavioral_cloning)]
+        paths += [(f"{where}.reward_signals.{s.kind}", s) for s in settings.reward_signals]
+        for key, section in paths:
+            path = getattr(section, "demo_path", None)
+            if path is None or path in experts:
+                continue
+            try:
+                experts[path] = expert_steps(path)
+            except DemoError as error:
+                raise TrainingError(f"{key}.demo_path: {error}") from None
     return experts
 
 

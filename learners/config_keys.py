@@ -213,20 +213,23 @@ def _optional(check: Check) -> Check:
     return lambda path, value: None if value is None else check(path, value)
 
 
-INTRINSIC = ("curiosity", "rnd")  # reward signals we implement besides extrinsic (PPO)
+INTRINSIC = ("curiosity", "gail", "rnd")  # reward signals besides extrinsic (PPO)
 INTRINSIC_TRAINERS = ("ppo",)
-INTRINSIC_RATE = {"curiosity": 3.0e-4, "rnd": 1.0e-4}  # ML-Agents' default learning_rate
+INTRINSIC_RATE = {"curiosity": 3.0e-4, "gail": 3.0e-4, "rnd": 1.0e-4}  # ML-Agents' defaults
 
 
 def intrinsic_signal(path: str, kind: str, value: object) -> RewardSignalSettings:
-    """A curiosity or rnd section: ``gamma``, ``strength``, ``learning_rate``,
-    ``encoding_size`` and the signal's own ``network_settings`` (ML-Agents' defaults)."""
+    """A curiosity, gail or rnd section: ``gamma``, ``strength``, ``learning_rate``,
+    ``encoding_size`` and the signal's own ``network_settings`` (ML-Agents' defaults);
+    gail's ``demo_path`` (required), ``use_actions`` and ``use_vail``."""
     checks: dict[str, Check] = {
         "gamma": float_in(0, 1, open_low=True),
         "strength": float_in(0),
         "learning_rate": POSITIVE,
         "encoding_size": _optional(POSITIVE_INT),
     }
+    if kind == "gail":
+        checks |= {"demo_path": _demo_path, "use_actions": _bool, "use_vail": _bool}
     given: dict[str, Any] = {"learning_rate": INTRINSIC_RATE[kind]}
     for key, item in section(path, value).items():
         if key == "network_settings":
@@ -241,6 +244,8 @@ def intrinsic_signal(path: str, kind: str, value: object) -> RewardSignalSetting
             given[key] = checks[key](f"{path}.{key}", item)
         else:
             raise unknown_key(path, key, {*checks, "network_settings"})
+    if kind == "gail" and "demo_path" not in given:
+        raise ConfigError(f"{path}.demo_path: required (a .demo file or a folder of them)")
     return RewardSignalSettings(kind, **given)
 
 
@@ -260,7 +265,7 @@ TOP_UNSUPPORTED: dict[str, object] = {
 }
 SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")
 EXTRINSIC: dict[str, Check] = {"gamma": float_in(0, 1, open_low=True), "strength": float_in(0)}
-REWARD_UNSUPPORTED = ("gail",)
+REWARD_UNSUPPORTED: tuple[str, ...] = ()
 ENGINE: dict[str, Check] = {
     "time_scale": POSITIVE,
     "width": POSITIVE_INT,

@@ -61,10 +61,17 @@ class Algorithm(Protocol):
 
 
 def make_algorithm(
-    network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+    network: ActorCritic,
+    settings: TrainerSettings,
+    compute: Compute | None = None,
+    experts: Mapping[str, ExpertSteps] | None = None,
 ) -> Algorithm:
-    """The behavior's algorithm, on ``compute``'s device (the network must be there)."""
-    return trainer(settings).algorithm_class()(network, settings, compute or Compute())
+    """The behavior's algorithm, on ``compute``'s device (the network must be there);
+    ``experts``: gail's demonstrations (PPO's reward signals)."""
+    algorithm = trainer(settings).algorithm_class()
+    if settings.reward_signals:
+        return algorithm(network, settings, compute or Compute(), experts=experts)
+    return algorithm(network, settings, compute or Compute())
 
 
 def policy_lag(updates: list[int], acted: torch.Tensor) -> torch.Tensor:
@@ -228,7 +235,7 @@ class CentralLearner:
                 spec,
                 settings,
                 network,
-                make_algorithm(network, settings, self.compute),
+                make_algorithm(network, settings, self.compute, self.experts),
                 cloning=self._cloning(behavior, spec, settings, network),
             )
         self._keys[behavior] = key

@@ -41,7 +41,6 @@ from torchrl.objectives.value.functional import vec_generalized_advantage_estima
 
 from learners.counters import on_policy_wanted
 from learners.devices import Compute
-from learners.intrinsic import Signals
 from learners.minibatch import (
     REPORTED,
     MinibatchStep,
@@ -52,9 +51,13 @@ from learners.minibatch import (
 )
 from learners.policies import ActorCritic
 from learners.schedules import BETA_END, EPSILON_END, decay
+from learners.signals import Signals
 from learners.trajectory_store import Rows, TrajectoryStore
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from batches.expert_steps import ExpertSteps
     from learners.settings import TrainerSettings
 
 VALUE_CHUNK_BYTES = 256 * 2**20
@@ -138,13 +141,18 @@ class PPO:
     reported = REPORTED  # the loss entries an update reports
 
     def __init__(
-        self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+        self,
+        network: ActorCritic,
+        settings: TrainerSettings,
+        compute: Compute | None = None,
+        experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
+        """``experts``: the demonstrations of a ``gail`` signal, by ``demo_path``."""
         self.network, self.settings = network, settings
         self.compute = compute or Compute()
         h = settings.hyperparameters
         device = self.compute.torch_device
-        self.signals = Signals(network, settings.reward_signals, device)
+        self.signals = Signals(network, settings.reward_signals, device, experts)
         self.optimizer = adam(self.trained_parameters(), h.learning_rate, self.compute)
         self.store = TrajectoryStore(
             h.buffer_size, device, self.groupmates, terminal_obs=bool(self.signals)
@@ -260,11 +268,11 @@ class PPO:
         next_value[:-1] = value[1:]
         next_value[rows.end_rows] = self.values(rows.end_obs)
         advantage, targets = torch.zeros_like(value[:, 0]), []
-        extrinsic = (rows.reward * self.settings.reward_strength, self.settings.gamma)
-        signals = self.signals.rewards(rows)  # (reward, gamma) each, after the extrinsic
-        for k, (reward, gamma) in enumerate([extrinsic, *signals]):
-            # intrinsic signals bootstrap at an episode's end (ML-Agents' ignore_done)
-            terminated = rows.terminated if k == 0 else torch.zeros_like(rows.terminated)
+        extrinsic = (rows.reward * self.settings.reward_strength, self.settings.gamma, False)
+        signals = self.signals.rewards(rows)  # after the extrinsic one
+        for k, (reward, gamma, ignore_done) in enumerate([extrinsic, *signals]):
+            # curiosity and rnd bootstrap at an episode's end (ML-Agents' ignore_done)
+            terminated = torch.zeros_like(rows.terminated) if ignore_done else rows.terminated
             gained, target = self.gae(
                 rows, value[:, k], next_value[:, k], reward, gamma, terminated
             )

@@ -81,13 +81,17 @@ class RewardSignalSettings:
     """One of ``reward_signals`` besides ``extrinsic`` (``learners/intrinsic.py``), with
     ML-Agents' defaults; each has its own value head and gamma."""
 
-    kind: str  # "curiosity" | "rnd"
+    kind: str  # "curiosity" | "rnd" | "gail"
     gamma: float = 0.99
     strength: float = 1.0
     # the signal's own networks (ML-Agents' NetworkSettings defaults), not the policy's
     network_settings: NetworkSettings = field(default_factory=NetworkSettings)
     learning_rate: float = 3.0e-4  # rnd: 1e-4
     encoding_size: int | None = None  # read as ML-Agents 1.1.0 reads it: not used
+    # gail only
+    demo_path: str | None = None  # the expert's .demo file or folder, made absolute
+    use_actions: bool = False  # the discriminator sees actions (and episode ends) too
+    use_vail: bool = False  # a variational information bottleneck in the discriminator
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from driver.options import TrainOptions
 from driver.train import train
+from tests.driver.test_record_demo import record
 
 pytestmark = pytest.mark.integration
 
@@ -50,3 +51,41 @@ def test_an_intrinsic_signal_trains_beside_the_extrinsic_one(ray_session, tmp_pa
     for tag in tags:
         assert any(s.endswith(tag) for s in scalars), (tag, scalars)
     assert "Policy/Extrinsic Value Estimate" in scalars
+
+
+def test_mlagents_imitation_config_trains_with_gail_cloning_and_curiosity(ray_session, tmp_path):
+    """ML-Agents' ``imitation/Pyramids.yaml``, its ``demo_path`` (twice) pointing at
+    unitysim's expert recorded by ``record-demo``, its summaries every 1,000 steps."""
+    demo = tmp_path / "ExpertPyramid.demo"
+    code, _, err = record(
+        tmp_path, "--env", "unitysim:Pyramids", "--heuristic", "--steps", "800", "--out", str(demo)
+    )
+    assert code == 0, err
+    data = yaml.safe_load((CONFIGS.parent / "imitation" / "Pyramids.yaml").read_text())
+    pyramids = data["behaviors"]["Pyramids"]
+    pyramids["reward_signals"]["gail"]["demo_path"] = str(demo)
+    pyramids["behavioral_cloning"]["demo_path"] = str(demo)
+    pyramids["summary_freq"] = 1000
+    path = tmp_path / "Pyramids.yaml"
+    path.write_text(yaml.safe_dump(data))
+    options = TrainOptions(
+        env="unitysim:Pyramids",
+        config=str(path),
+        results_dir=str(tmp_path),
+        run_id="imitation",
+        max_steps=8_200,
+        workers=1,
+        progress=False,
+    )
+    result = train(options)
+    events = EventAccumulator(str(result.run_dir / "Pyramids")).Reload()
+    scalars = events.Tags()["scalars"]
+    for tag in (
+        "Policy/Gail Reward",
+        "Policy/Gail Value Estimate",
+        "Losses/GAIL Loss",
+        "Policy/GAIL Expert Estimate",
+        "Policy/Curiosity Reward",
+        "Losses/Pretraining Loss",
+    ):
+        assert tag in scalars, (tag, scalars)

@@ -1,17 +1,22 @@
-"""Intrinsic reward signals (``curiosity``, ``rnd``): read from the config with ML-Agents'
-defaults, each signal's reward falling where it has trained (and not elsewhere), and PPO
-giving each its own value head, gamma and bootstrap at an episode's end."""
+"""Reward signals besides the extrinsic one (``curiosity``, ``rnd``, ``gail``): read from
+the config with ML-Agents' defaults, each signal's reward falling where it has trained
+(and not elsewhere), GAIL's rising on the expert's kind of step, and PPO giving each its
+own value head, gamma and bootstrap at an episode's end."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
+from batches.expert_steps import ExpertSteps
 from learners.config import ConfigError, parse_config
-from learners.intrinsic import RND, Curiosity, Transitions
+from learners.gail import GAIL
+from learners.intrinsic import RND, Curiosity
 from learners.policies import ActorCritic
 from learners.ppo import PPO
 from learners.settings import Hyperparameters, NetworkSettings, RewardSignalSettings
+from learners.signal_base import Transitions
 from tests.learners.fakes import segment, vector_spec
 
 SMALL = NetworkSettings(hidden_units=32, num_layers=2)
@@ -82,7 +87,7 @@ def test_curiosity_learns_a_transition_and_caps_its_reward():
     assert last["Losses/Curiosity Inverse Loss"] < first["Losses/Curiosity Inverse Loss"] / 2
 
 
-def ppo_with(signals: tuple[RewardSignalSettings, ...]) -> PPO:
+def ppo_with(signals: tuple[RewardSignalSettings, ...], experts: dict | None = None) -> PPO:
     torch.manual_seed(0)
     spec = vector_spec(4, branches=(2,))
     settings = parse_config({}).default
@@ -91,7 +96,7 @@ def ppo_with(signals: tuple[RewardSignalSettings, ...]) -> PPO:
         network_settings=SMALL,
         reward_signals=signals,
     )
-    return PPO(ActorCritic(spec, SMALL), settings)
+    return PPO(ActorCritic(spec, SMALL), settings, experts=experts)
 
 
 def test_each_signal_has_its_value_head_and_bootstraps_at_an_episodes_end():
@@ -133,3 +138,60 @@ def test_an_update_trains_the_signal_and_reports_ml_agents_tags():
     heads = zip(ppo.signals.heads.parameters(), again.signals.heads.parameters(), strict=True)
     assert all(torch.equal(mine, theirs) for mine, theirs in heads)
     assert again.signals.items[0].updated
+
+
+def test_gail_is_read_with_its_demonstrations():
+    (gail,) = (
+        config({"gail": {"demo_path": "e.demo", "use_vail": True}}).behaviors["B"].reward_signals
+    )
+    assert (gail.kind, gail.learning_rate, gail.use_vail, gail.use_actions) == (
+        "gail", 3e-4, True, False,
+    )  # fmt: skip
+    assert gail.demo_path.endswith("/e.demo")
+    with pytest.raises(ConfigError, match=r"reward_signals.gail.demo_path: required"):
+        config({"gail": {"strength": 0.1}})
+
+
+def expert_steps_of(obs: torch.Tensor, discrete: torch.Tensor) -> ExpertSteps:
+    n = len(obs)
+    return ExpertSteps(
+        "expert.demo",
+        vector_spec(4, branches=(2,)),
+        (obs.numpy(),),
+        np.zeros((n, 0), np.float32),
+        discrete.numpy(),
+        np.zeros(n, bool),
+    )
+
+
+@pytest.mark.parametrize(("use_actions", "use_vail"), [(False, False), (True, True)])
+def test_gail_rewards_the_experts_kind_of_step(use_actions, use_vail):
+    torch.manual_seed(0)
+    expert_obs, policy_obs = torch.randn(512, 4) + 1.5, torch.randn(512, 4) - 1.5
+    ones, zeros = torch.ones(512, 1).long(), torch.zeros(512, 1).long()
+    settings = RewardSignalSettings(
+        "gail", network_settings=SMALL, use_actions=use_actions, use_vail=use_vail
+    )
+    gail = GAIL(vector_spec(4, branches=(2,)), settings, expert_steps_of(expert_obs, ones))
+    policy = Transitions({"vector": policy_obs}, {}, None, zeros, torch.zeros(512, dtype=bool))
+    expert = Transitions({"vector": expert_obs}, {}, None, ones, torch.zeros(512, dtype=bool))
+    for _ in range(150):
+        stats = gail.update(policy[torch.randint(512, (64,))])
+    assert stats["Policy/GAIL Expert Estimate"] > stats["Policy/GAIL Policy Estimate"] + 0.3
+    assert gail.rewards(expert).mean() > 2 * gail.rewards(policy).mean()
+    assert ("Policy/GAIL Beta" in stats) == use_vail
+    assert "Policy/GAIL Grad Mag Loss" in stats
+
+
+def test_gail_refuses_demonstrations_of_another_spec():
+    other = ExpertSteps(
+        "walker.demo",
+        vector_spec(6, continuous=2),
+        (np.zeros((4, 6), np.float32),),
+        np.zeros((4, 2), np.float32),
+        np.zeros((4, 0), np.int64),
+        np.zeros(4, bool),
+    )
+    gail = RewardSignalSettings("gail", network_settings=SMALL, demo_path="walker.demo")
+    with pytest.raises(ValueError, match=r"reward_signals.gail: walker.demo: actions"):
+        ppo_with((gail,), experts={"walker.demo": other})

@@ -1,0 +1,130 @@
+"""A behavior's reward signals besides the extrinsic one, as PPO (``learners/ppo.py``)
+uses them in one update: each with a value head of its own on the policy's critic
+(``ActorCritic.value_of``'s ``heads``), its rewards on the update's rows before it
+trains, its networks trained after its epochs, its TensorBoard figures."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import nn
+
+from batches.expert_steps import ExpertSteps
+from learners.gail import GAIL
+from learners.intrinsic import RND, Curiosity
+from learners.policies import ActorCritic
+from learners.settings import RewardSignalSettings
+from learners.signal_base import Signal, Transitions, xavier
+from learners.trajectory_store import Rows
+
+CHUNK = 4096  # rows a signal evaluates at once
+
+
+def make_signal(
+    network: ActorCritic, settings: RewardSignalSettings, experts: Mapping[str, ExpertSteps]
+) -> Signal:
+    """The signal of ``settings``; gail's demonstrations must fit the behavior's spec."""
+    if settings.kind == "rnd":
+        return RND(network.spec, settings)
+    if settings.kind == "curiosity":
+        return Curiosity(network.spec, settings)
+    demo = experts.get(str(settings.demo_path))
+    if demo is None:
+        raise ValueError(f"reward_signals.gail: {settings.demo_path} not loaded")
+    if problem := demo.problem_with(network.spec):
+        raise ValueError(f"reward_signals.gail: {problem}")
+    return GAIL(network.spec, settings, demo)
+
+
+class Signals:
+    """``rewards`` on the update's rows (before it trains), ``train`` after its epochs,
+    then ``report``; ``experts``: gail's demonstrations, by ``demo_path``."""
+
+    def __init__(
+        self,
+        network: ActorCritic,
+        settings: tuple[RewardSignalSettings, ...],
+        device: torch.device | str = "cpu",
+        experts: Mapping[str, ExpertSteps] | None = None,
+    ) -> None:
+        self.items = [make_signal(network, s, experts or {}).to(device) for s in settings]
+        width = network.value.in_features
+        self.heads = nn.ModuleList(xavier(width, 1) for _ in settings).to(device)
+        self._steps: Transitions | None = None
+        self._rewards: list[torch.Tensor] = []
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def rewards(self, rows: Rows) -> list[tuple[torch.Tensor, float, bool]]:
+        """Each signal's reward per row (times its strength), gamma and ``ignore_done``."""
+        if not self.items:
+            return []
+        steps = self._steps = transitions(rows)
+        for signal in self.items:
+            signal.update_normalization(steps)
+        self._rewards = [
+            torch.cat([s.rewards(steps[i : i + CHUNK]) for i in range(0, len(rows), CHUNK)])
+            * s.strength
+            for s in self.items
+        ]
+        return [(r, s.gamma, s.ignore_done) for r, s in zip(self._rewards, self.items, strict=True)]
+
+    def train(self, train: torch.Tensor, num_epoch: int, batch_size: int) -> dict[str, float]:
+        """Each signal's networks: one step per minibatch of the trained rows, as many
+        minibatches as PPO's epochs took (the remainder left out); the mean losses."""
+        if self._steps is None:
+            return {}
+        sums: dict[str, float] = {}
+        count = 0
+        for _ in range(num_epoch):
+            order = train[torch.randperm(len(train), device=train.device)]
+            for index in order.split(batch_size):
+                if len(index) < batch_size:
+                    continue
+                count += 1
+                minibatch = self._steps[index]
+                for signal in self.items:
+                    for name, value in signal.update(minibatch).items():
+                        sums[name] = sums.get(name, 0.0) + value
+        self._steps = None
+        return {name: total / max(count, 1) for name, total in sums.items()}
+
+    def report(self, value: torch.Tensor, train: torch.Tensor) -> dict[str, float]:
+        """ML-Agents' ``Policy/<Signal> Value Estimate`` and ``Policy/<Signal> Reward``;
+        the reward here is the mean per trained step (ML-Agents: per episode)."""
+        out = {}
+        for k, (signal, reward) in enumerate(zip(self.items, self._rewards, strict=True)):
+            out[f"Policy/{signal.stat} Value Estimate"] = float(value[train, 1 + k].mean())
+            out[f"Policy/{signal.stat} Reward"] = float(reward[train].mean())
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "heads": self.heads.state_dict(),
+            "signals": [
+                {"networks": s.state_dict(), "optimizer": s.optimizer.state_dict()}
+                for s in self.items
+            ],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.heads.load_state_dict(state["heads"])
+        for signal, saved in zip(self.items, state["signals"], strict=True):
+            signal.load_state_dict(saved["networks"])
+            signal.optimizer.load_state_dict(saved["optimizer"])
+
+
+def transitions(rows: Rows) -> Transitions:
+    """Every row's observation, next observation and action: a row's next observation is
+    the next row's, or at a trajectory's end the one the store kept there."""
+    next_obs = {}
+    for name, obs in rows.obs.items():
+        after = torch.empty_like(obs)
+        after[:-1] = obs[1:]
+        after[rows.end_rows] = rows.end_obs[name]
+        next_obs[name] = after
+    # episode ends: the terminated ones (an end at max_step looks like a horizon cut here)
+    return Transitions(rows.obs, next_obs, rows.continuous, rows.discrete, rows.terminated)
