@@ -161,6 +161,16 @@ def _optional_path(path: str, value: object) -> str | None:
     return value
 
 
+def checked(path: str, value: object, checks: Mapping[str, Check]) -> dict[str, Any]:
+    """A section's keys, each through its check; an unknown one is the error."""
+    given = {}
+    for key, item in section(path, value).items():
+        if key not in checks:
+            raise unknown_key(path, key, checks)
+        given[key] = checks[key](f"{path}.{key}", item)
+    return given
+
+
 def _self_play(path: str, value: object) -> SelfPlaySettings:
     """ML-Agents' ``self_play`` section; ``team_change`` defaults to 5 x ``save_steps``."""
     checks: dict[str, Check] = {
@@ -171,11 +181,7 @@ def _self_play(path: str, value: object) -> SelfPlaySettings:
         "play_against_latest_model_ratio": float_in(0, 1),
         "initial_elo": float_in(),
     }
-    given = {}
-    for key, item in section(path, value).items():
-        if key not in checks:
-            raise unknown_key(path, key, checks)
-        given[key] = checks[key](f"{path}.{key}", item)
+    given = checked(path, value, checks)
     if "team_change" not in given:
         given["team_change"] = 5 * given.get("save_steps", SelfPlaySettings.save_steps)
     return SelfPlaySettings(**given)
@@ -183,8 +189,8 @@ def _self_play(path: str, value: object) -> SelfPlaySettings:
 
 def _behavioral_cloning(path: str, value: object) -> BehavioralCloningSettings:
     """ML-Agents' ``behavioral_cloning`` section; ``demo_path`` made absolute (the learner
-    reads it, in a process of its own) and checked to exist (``demonstrations`` checks
-    the file itself where the run is planned)."""
+    reads it in a process of its own; the driver reads the file where the run is
+    planned)."""
     checks: dict[str, Check] = {
         "demo_path": _demo_path,
         "strength": float_in(0),
@@ -193,11 +199,7 @@ def _behavioral_cloning(path: str, value: object) -> BehavioralCloningSettings:
         "num_epoch": _optional(POSITIVE_INT),
         "batch_size": _optional(POSITIVE_INT),
     }
-    given = {}
-    for key, item in section(path, value).items():
-        if key not in checks:
-            raise unknown_key(path, key, checks)
-        given[key] = checks[key](f"{path}.{key}", item)
+    given = checked(path, value, checks)
     if "demo_path" not in given:
         raise ConfigError(f"{path}.demo_path: required (a .demo file or a folder of them)")
     return BehavioralCloningSettings(**given)
