@@ -77,6 +77,9 @@ CASES = (
         3600,
         measure="group",
     ),
+    # a sparse reward, ML-Agents' intrinsic signals: curiosity, RND (to mlagents-learn's end)
+    Case("Pyramids-PPO-curiosity", "Pyramids", "ppo_Pyramids.yaml", None, (), 900),
+    Case("PyramidsRND-PPO", "Pyramids", "ppo_PyramidsRND.yaml", None, (), 900),
     # self-play, ML-Agents' configs: ELO, to the level mlagents-learn ends its run at
     Case("SoccerTwos-POCA", "SoccerTwos", "poca_SoccerTwos.yaml", None, (), 900, "elo"),
     Case(
