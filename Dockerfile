@@ -23,6 +23,7 @@
 #                any    whichever build pip finds (the CPU index first), nothing checked.
 #              The build stops with a one-line error when the chosen build's wheel is not on
 #              the index, instead of pip silently taking another build.
+#   EXTRAS=tune  with Ray Tune, for `unity-rollout tune` (pandas and pyarrow, ~250 MB more).
 #   PIP_EXTRA_INDEX_URL   torch's index for TORCH, unless set (a mirror of it).
 #   BASE       the Python base image (scripts/image-check.sh passes a local stand-in when
 #              no image registry is reachable).
@@ -61,16 +62,17 @@ COPY config/ config/
 # PIP_EXTRA_INDEX_URL: the index of TORCH's build (2.13.0+cpu or 2.13.0+cu130 satisfies the
 # torch==2.13.0 pin), so the CPU image does not pull several GB of CUDA libraries and the
 # GPU image gets the CUDA build it names. The first two steps only choose the index (no
-# network; tests/deploy/test_dockerfile.py runs them as written). EXTRAS= (empty): runtime
-# packages only, no test tools. The import fails the build if the C extension is missing
+# network; tests/deploy/test_dockerfile.py runs them as written). EXTRAS (empty by
+# default): runtime packages only, no test tools; `tune` adds Ray Tune. The import fails the build if the C extension is missing
 # (setup.py would only warn). Then out go torch's C++ test programs, headers (for compiling
 # extensions) and Ray's Java workers: nothing here imports or runs them.
 ARG TORCH=cpu
+ARG EXTRAS=
 ARG PIP_EXTRA_INDEX_URL=
 RUN PIP_EXTRA_INDEX_URL=$(python3.11 scripts/check-torch-index.py --index-for "$TORCH" "$PIP_EXTRA_INDEX_URL") \
     && export PIP_EXTRA_INDEX_URL \
     && python3.11 scripts/check-torch-index.py --torch "$TORCH" "$PIP_EXTRA_INDEX_URL" \
-    && PYTHON=python3.11 VENV=/opt/venv EXTRAS='' PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
+    && PYTHON=python3.11 VENV=/opt/venv EXTRAS="$EXTRAS" PIP_NO_CACHE_DIR=1 scripts/setup-venv.sh \
     && /opt/venv/bin/python -c "import unitysim.envs._ball3d" \
     && /opt/venv/bin/python scripts/check-torch-index.py --torch "$TORCH" --installed \
     && site=/opt/venv/lib/python3.11/site-packages \

@@ -243,6 +243,13 @@ def _cmd_tune(args: argparse.Namespace) -> int:
         planned = plan_tune(options, tuning)
     except TrainingError as error:
         return _error(error)
+    from importlib.util import find_spec
+
+    if find_spec("pandas") is None or find_spec("pyarrow") is None:
+        return _error(
+            "tune needs Ray Tune: pip install 'unity-rollout[tune]' (the image: docker "
+            "build --build-arg EXTRAS=tune)"
+        )
     if not options.address:
         _loopback_only_ray()
     from driver.tune import tune_run
