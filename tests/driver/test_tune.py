@@ -175,3 +175,21 @@ def test_pbt_with_four_trials_on_two_cores(tmp_path):
     best_lr = best["behaviors"]["3DBall"]["hyperparameters"]["learning_rate"]
     assert any(float(row[LR]) == best_lr for row in rows)
     parse_config(best)
+
+
+def test_without_ray_tune_the_command_says_how_to_get_it(tmp_path, monkeypatch, capsys):
+    import importlib.util
+
+    from driver import cli
+
+    write(tmp_path / "config.yaml", CONFIG)
+    write(tmp_path / "search.yaml", {LR: {"choice": [1e-3]}})
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "pyarrow" else real(name, *a)
+    )
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["tune", "config.yaml", "--search", "search.yaml"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: tune needs Ray Tune: pip install 'unity-rollout[tune]'")
+    assert "\n" not in err
