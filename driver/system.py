@@ -5,11 +5,13 @@ gets, the learner actor and the service with its workers (not yet started). The 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import ray
 
+from batches.expert_steps import ExpertSteps
 from driver.curriculum import LessonPlan, lesson_plan
 from driver.declaration import TrainingError
 from driver.learner_keeper import load_into
@@ -66,7 +68,13 @@ def choose_device(options: TrainOptions, config: RunConfig) -> str:
         raise TrainingError(str(error)) from None
 
 
-def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
+def start_learner(
+    options: TrainOptions,
+    config: RunConfig,
+    device: str,
+    experts: Mapping[str, ExpertSteps] | None = None,
+) -> Any:
+    """The learner actor; ``experts``: the run's demonstrations (read here when None)."""
     return learner_actor(
         config,
         options.max_steps,
@@ -75,7 +83,7 @@ def start_learner(options: TrainOptions, config: RunConfig, device: str) -> Any:
         device=device,
         mixed_precision=options.mixed_precision,
         inference=options.inference,
-        experts=read_experts(config),
+        experts=read_experts(config) if experts is None else experts,
     )
 
 
@@ -130,12 +138,13 @@ def build_system(
     start: Start,
     device: str = "cpu",
     worker_cpus: float | None = None,
+    experts: Mapping[str, ExpertSteps] | None = None,
 ) -> tuple[RolloutService, Any]:
     """Learner actor (restored when resuming, from another run's networks when
     initialized) and the service with its workers (not started), which wait for the
     learner's weights when it does not start from the factory's. ``worker_cpus``: each
     worker's share, where the caller sizes it (a Tune trial's placement group)."""
-    learner = start_learner(options, config, device)
+    learner = start_learner(options, config, device, experts)
     if start.resume is not None:
         load_into(learner, start.resume)
     elif start.initial is not None:

@@ -24,12 +24,15 @@ from typing import Any
 import ray
 from ray.exceptions import RayActorError
 
+from batches.contracts import base_name
+from batches.specs import spec_from_dict
 from driver.behavior_notes import BehaviorNotes
 from driver.checkpoints import Checkpoints
 from driver.curriculum import LessonPlan
+from driver.declaration import TrainingError
 from driver.learner_keeper import LearnerKeeper
 from driver.options import TrainOptions
-from driver.run_dir import Start
+from driver.run_dir import Start, read_experts
 from driver.startup import first_steps, startup_times
 from driver.summaries import Summaries
 from driver.system import build_system, choose_device, start_learner
@@ -92,12 +95,13 @@ class TrainingRun:
             self.run_dir, config, self.start_steps, writes=not options.inference
         )
         device = choose_device(options, config)
+        self.experts = read_experts(config)  # behavioral_cloning's and gail's
         self.service, learner = build_system(
-            options, config, self.unity, self.start, device, self.worker_cpus
+            options, config, self.unity, self.start, device, self.worker_cpus, self.experts
         )
         self.keeper = LearnerKeeper(
             learner,
-            lambda: start_learner(options, config, device),
+            lambda: start_learner(options, config, device, self.experts),
             self.run_dir,
             options.max_learner_restarts,
         )
@@ -145,6 +149,7 @@ class TrainingRun:
         service, lessons = self.service, self.lessons
         try:
             metrics = service.run(seconds=0.5, report_every=0.5)
+            self._check_demonstrations(set(metrics.specs) - self._met, metrics.specs)
             learner = self.keeper.learner
             self.progress = ray.get(learner.progress.remote())
             self.notes.report(metrics.specs)
@@ -163,6 +168,16 @@ class TrainingRun:
             raise RolloutError(f"{error} ({kept})") from error
         except (LearnerDied, RayActorError) as error:  # only the learner's calls raise it
             self.keeper.restore(self.service, _cause(error))
+
+    def _check_demonstrations(self, new: set[str], specs: Mapping[str, Any]) -> None:
+        """A behavior's demonstrations (cloning, GAIL) against the spec it came with: a
+        one-line error naming the file, whichever of driver and learner sees it first."""
+        for behavior in new:
+            settings = self.config.for_behavior(behavior)
+            sections = [settings.behavioral_cloning, *settings.reward_signals]
+            for path in {getattr(s, "demo_path", None) for s in sections} - {None}:
+                if problem := self.experts[path].problem_with(spec_from_dict(specs[behavior])):
+                    raise TrainingError(f"the demonstrations of {base_name(behavior)}: {problem}")
 
     def state(self) -> dict[str, Any]:
         """The learner's whole state now (after every submission sent to it)."""

@@ -20,6 +20,27 @@ pytestmark = pytest.mark.integration
 CONFIGS = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo"
 
 
+def train_pyramids(tmp_path: Path, data: dict) -> list[str]:
+    """ML-Agents' ``data`` with summaries every 1,000 steps, 8,200 steps on unitysim
+    Pyramids (buffer_size 2048: updates, with summaries between them); the scalar tags
+    its TensorBoard folder holds."""
+    data["behaviors"]["Pyramids"]["summary_freq"] = 1000
+    path = tmp_path / "Pyramids.yaml"
+    path.write_text(yaml.safe_dump(data))
+    options = TrainOptions(
+        env="unitysim:Pyramids",
+        config=str(path),
+        results_dir=str(tmp_path),
+        run_id="signals",
+        max_steps=8_200,
+        workers=1,
+        progress=False,
+    )
+    result = train(options)
+    assert not result.interrupted
+    return EventAccumulator(str(result.run_dir / "Pyramids")).Reload().Tags()["scalars"]
+
+
 @pytest.mark.parametrize(
     ("config", "tags"),
     [
@@ -31,23 +52,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo"
     ],
 )
 def test_an_intrinsic_signal_trains_beside_the_extrinsic_one(ray_session, tmp_path, config, tags):
-    data = yaml.safe_load((CONFIGS / config).read_text())
-    data["behaviors"]["Pyramids"]["summary_freq"] = 1000
-    path = tmp_path / config
-    path.write_text(yaml.safe_dump(data))
-    options = TrainOptions(
-        env="unitysim:Pyramids",
-        config=str(path),
-        results_dir=str(tmp_path),
-        run_id="signal",
-        max_steps=8_200,  # buffer_size 2048: updates, with summaries between them
-        workers=1,
-        progress=False,
-    )
-    result = train(options)
-    assert not result.interrupted
-    events = EventAccumulator(str(result.run_dir / "Pyramids")).Reload()
-    scalars = events.Tags()["scalars"]
+    scalars = train_pyramids(tmp_path, yaml.safe_load((CONFIGS / config).read_text()))
     for tag in tags:
         assert any(s.endswith(tag) for s in scalars), (tag, scalars)
     assert "Policy/Extrinsic Value Estimate" in scalars
@@ -65,21 +70,7 @@ def test_mlagents_imitation_config_trains_with_gail_cloning_and_curiosity(ray_se
     pyramids = data["behaviors"]["Pyramids"]
     pyramids["reward_signals"]["gail"]["demo_path"] = str(demo)
     pyramids["behavioral_cloning"]["demo_path"] = str(demo)
-    pyramids["summary_freq"] = 1000
-    path = tmp_path / "Pyramids.yaml"
-    path.write_text(yaml.safe_dump(data))
-    options = TrainOptions(
-        env="unitysim:Pyramids",
-        config=str(path),
-        results_dir=str(tmp_path),
-        run_id="imitation",
-        max_steps=8_200,
-        workers=1,
-        progress=False,
-    )
-    result = train(options)
-    events = EventAccumulator(str(result.run_dir / "Pyramids")).Reload()
-    scalars = events.Tags()["scalars"]
+    scalars = train_pyramids(tmp_path, data)
     for tag in (
         "Policy/Gail Reward",
         "Policy/Gail Value Estimate",
