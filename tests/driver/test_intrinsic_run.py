@@ -41,20 +41,11 @@ def train_pyramids(tmp_path: Path, data: dict) -> list[str]:
     return EventAccumulator(str(result.run_dir / "Pyramids")).Reload().Tags()["scalars"]
 
 
-@pytest.mark.parametrize(
-    ("config", "tags"),
-    [
-        (
-            "Pyramids.yaml",
-            ("Curiosity Reward", "Curiosity Value Estimate", "Curiosity Forward Loss"),
-        ),
-        ("PyramidsRND.yaml", ("Rnd Reward", "Rnd Value Estimate", "RND Loss")),
-    ],
-)
-def test_an_intrinsic_signal_trains_beside_the_extrinsic_one(ray_session, tmp_path, config, tags):
-    scalars = train_pyramids(tmp_path, yaml.safe_load((CONFIGS / config).read_text()))
-    for tag in tags:
-        assert any(s.endswith(tag) for s in scalars), (tag, scalars)
+def test_rnd_trains_beside_the_extrinsic_signal(ray_session, tmp_path):
+    """(Curiosity: the imitation config below has it.)"""
+    scalars = train_pyramids(tmp_path, yaml.safe_load((CONFIGS / "PyramidsRND.yaml").read_text()))
+    for tag in ("Policy/Rnd Reward", "Policy/Rnd Value Estimate", "Losses/RND Loss"):
+        assert tag in scalars, (tag, scalars)
     assert "Policy/Extrinsic Value Estimate" in scalars
 
 
@@ -77,6 +68,8 @@ def test_mlagents_imitation_config_trains_with_gail_cloning_and_curiosity(ray_se
         "Losses/GAIL Loss",
         "Policy/GAIL Expert Estimate",
         "Policy/Curiosity Reward",
+        "Policy/Curiosity Value Estimate",
+        "Losses/Curiosity Forward Loss",
         "Losses/Pretraining Loss",
     ):
         assert tag in scalars, (tag, scalars)
