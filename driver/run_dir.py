@@ -13,7 +13,7 @@ import logging
 import os
 import random
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,7 @@ from driver.declaration import TrainingError, from_settings
 from driver.options import TrainOptions
 from learners.config import DEFAULTS, ConfigError, config_for_env, load_config, parse_config
 from learners.factory import policy_factory
-from learners.settings import RunConfig
+from learners.settings import RunConfig, TrainerSettings
 from rollout.builds import UNITYSIM_PREFIX, UnityError, resolve_build
 from rollout.ports import RANGE_VARIABLE, REGISTRY_VARIABLE, PortError, PortRange
 
@@ -41,6 +41,8 @@ class Plan:
     run_dir: Path
     resume: bool  # from the run's checkpoints
     start: Start | None = None  # the run opened (``open_run``), when it was before Ray
+    # behavioral_cloning's and gail's demonstrations, by demo_path: read once, here
+    experts: Mapping[str, ExpertSteps] = field(default_factory=dict)
 
     @property
     def loads_checkpoints(self) -> bool:
@@ -103,29 +105,37 @@ def plan(options: TrainOptions) -> Plan:
         )
     if options.env != "editor" and not options.env.startswith(UNITYSIM_PREFIX):
         _resolve(options.env)  # a build path; unitysim's names are checked as it is written
-    read_experts(config)
-    return Plan(options, config, run_dir, resume)
+    return Plan(options, config, run_dir, resume, experts=read_experts(config))
+
+
+def demonstrations_of(settings: TrainerSettings) -> dict[str, str]:
+    """Each section of a behavior's settings that reads demonstrations, and its
+    ``demo_path``: ``behavioral_cloning``, ``reward_signals.gail``."""
+    sections = {"behavioral_cloning": settings.behavioral_cloning}
+    sections |= {f"reward_signals.{s.kind}": s for s in settings.reward_signals}
+    return {key: path for key, s in sections.items() if (path := getattr(s, "demo_path", None))}
 
 
 def read_experts(config: RunConfig) -> dict[str, ExpertSteps]:
-    """The demonstrations of every ``behavioral_cloning`` and ``gail`` section, by
-    ``demo_path``; a file that is missing, truncated or corrupt is one line naming it (its
-    spec is checked against the behavior's by the learner, which meets the behavior)."""
+    """The demonstrations of every section that reads some, by ``demo_path``; a file that
+    is missing, truncated or corrupt is one line naming it (its spec is checked against
+    the behavior's when a worker first meets the behavior). A run without any does not
+    import ``demonstrations``."""
+    wanted: dict[str, str] = {}  # demo_path -> the first key that names it
+    for name, settings in (*config.behaviors.items(), ("default_settings", config.default)):
+        where = name if name == "default_settings" else f"behaviors.{name}"
+        for section, path in demonstrations_of(settings).items():
+            wanted.setdefault(path, f"{where}.{section}")
+    if not wanted:
+        return {}
     from demonstrations import DemoError, expert_steps
 
     experts: dict[str, ExpertSteps] = {}
-    for name, settings in (*config.behaviors.items(), ("default_settings", config.default)):
-        where = name if name == "default_settings" else f"behaviors.{name}"
-        paths = [(f"{where}.behavioral_cloning", settings.behavioral_cloning)]
-        paths += [(f"{where}.reward_signals.{s.kind}", s) for s in settings.reward_signals]
-        for key, section in paths:
-            path = getattr(section, "demo_path", None)
-            if path is None or path in experts:
-                continue
-            try:
-                experts[path] = expert_steps(path)
-            except DemoError as error:
-                raise TrainingError(f"{key}.demo_path: {error}") from None
+    for path, key in wanted.items():
+        try:
+            experts[path] = expert_steps(path)
+        except DemoError as error:
+            raise TrainingError(f"{key}.demo_path: {error}") from None
     return experts
 
 

@@ -16,7 +16,7 @@ from driver.curriculum import LessonPlan, lesson_plan
 from driver.declaration import TrainingError
 from driver.learner_keeper import load_into
 from driver.options import TrainOptions
-from driver.run_dir import Start, read_experts
+from driver.run_dir import Start
 from learners.devices import DeviceError, learner_device
 from learners.factory import policy_factory
 from learners.remote import learner_actor
@@ -69,12 +69,9 @@ def choose_device(options: TrainOptions, config: RunConfig) -> str:
 
 
 def start_learner(
-    options: TrainOptions,
-    config: RunConfig,
-    device: str,
-    experts: Mapping[str, ExpertSteps] | None = None,
+    options: TrainOptions, config: RunConfig, device: str, experts: Mapping[str, ExpertSteps]
 ) -> Any:
-    """The learner actor; ``experts``: the run's demonstrations (read here when None)."""
+    """The learner actor; ``experts``: the run's demonstrations (``Plan.experts``)."""
     return learner_actor(
         config,
         options.max_steps,
@@ -83,7 +80,7 @@ def start_learner(
         device=device,
         mixed_precision=options.mixed_precision,
         inference=options.inference,
-        experts=read_experts(config) if experts is None else experts,
+        experts=experts,
     )
 
 
@@ -136,14 +133,15 @@ def build_system(
     config: RunConfig,
     unity: UnityConfig,
     start: Start,
+    experts: Mapping[str, ExpertSteps],
     device: str = "cpu",
     worker_cpus: float | None = None,
-    experts: Mapping[str, ExpertSteps] | None = None,
 ) -> tuple[RolloutService, Any]:
     """Learner actor (restored when resuming, from another run's networks when
-    initialized) and the service with its workers (not started), which wait for the
-    learner's weights when it does not start from the factory's. ``worker_cpus``: each
-    worker's share, where the caller sizes it (a Tune trial's placement group)."""
+        initialized) and the service with its workers (not started), which wait for the
+        learner's weights when it does not start from the factory's. ``experts``: the run's
+    demonstrations (``Plan.experts``); ``worker_cpus``: each
+        worker's share, where the caller sizes it (a Tune trial's placement group)."""
     learner = start_learner(options, config, device, experts)
     if start.resume is not None:
         load_into(learner, start.resume)

@@ -64,7 +64,7 @@ def train(
     try:
         with (
             stop_on_signals() as received,
-            TrainingRun(options, config, unity, run_dir, start, lessons) as run,
+            TrainingRun(options, config, unity, run_dir, start, lessons, planned.experts) as run,
         ):
             run.advance(signals=received)
             return run.finish(received[0] if received else None)

@@ -25,6 +25,7 @@ import ray
 from ray.exceptions import RayActorError
 
 from batches.contracts import base_name
+from batches.expert_steps import ExpertSteps
 from batches.specs import spec_from_dict
 from driver.behavior_notes import BehaviorNotes
 from driver.checkpoints import Checkpoints
@@ -32,7 +33,7 @@ from driver.curriculum import LessonPlan
 from driver.declaration import TrainingError
 from driver.learner_keeper import LearnerKeeper
 from driver.options import TrainOptions
-from driver.run_dir import Start, read_experts
+from driver.run_dir import Start, demonstrations_of
 from driver.startup import first_steps, startup_times
 from driver.summaries import Summaries
 from driver.system import build_system, choose_device, start_learner
@@ -67,8 +68,11 @@ class TrainingRun:
         run_dir: Path,
         start: Start,
         lessons: LessonPlan,
+        experts: Mapping[str, ExpertSteps],
         worker_cpus: float | None = None,
     ) -> None:
+        """``experts``: behavioral_cloning's and gail's demonstrations (``Plan.experts``)."""
+        self.experts = experts
         self.worker_cpus = worker_cpus  # set by a Tune trial: its placement group's bundles
         self.options, self.config, self.unity = options, config, unity
         self.run_dir, self.start, self.lessons = run_dir, start, lessons
@@ -95,9 +99,8 @@ class TrainingRun:
             self.run_dir, config, self.start_steps, writes=not options.inference
         )
         device = choose_device(options, config)
-        self.experts = read_experts(config)  # behavioral_cloning's and gail's
         self.service, learner = build_system(
-            options, config, self.unity, self.start, device, self.worker_cpus, self.experts
+            options, config, self.unity, self.start, self.experts, device, self.worker_cpus
         )
         self.keeper = LearnerKeeper(
             learner,
@@ -173,9 +176,7 @@ class TrainingRun:
         """A behavior's demonstrations (cloning, GAIL) against the spec it came with: a
         one-line error naming the file, whichever of driver and learner sees it first."""
         for behavior in new:
-            settings = self.config.for_behavior(behavior)
-            sections = [settings.behavioral_cloning, *settings.reward_signals]
-            for path in {getattr(s, "demo_path", None) for s in sections} - {None}:
+            for path in set(demonstrations_of(self.config.for_behavior(behavior)).values()):
                 if problem := self.experts[path].problem_with(spec_from_dict(specs[behavior])):
                     raise TrainingError(f"the demonstrations of {base_name(behavior)}: {problem}")
 

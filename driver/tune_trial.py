@@ -139,7 +139,14 @@ class UnityTrial(tune.Trainable):
         lessons = lesson_plan(planned.options, planned.config, start.resume)
         unity = unity_config(planned.options, planned.config, run_dir, lessons)
         run = TrainingRun(
-            planned.options, planned.config, unity, run_dir, start, lessons, base.worker_cpus
+            planned.options,
+            planned.config,
+            unity,
+            run_dir,
+            start,
+            lessons,
+            planned.experts,
+            base.worker_cpus,
         )
         self.run = run.__enter__()
         self.reported_at = sum(run.start_steps.values())

@@ -239,7 +239,13 @@ def intrinsic_signal(path: str, kind: str, value: object) -> RewardSignalSetting
             for name, setting in section(f"{path}.{key}", item).items():
                 if name in NETWORK:
                     network[name] = NETWORK[name](f"{path}.{key}.{name}", setting)
-                elif name != "memory" or setting is not None:  # ML-Agents ignores it too
+                elif name == "memory":  # ML-Agents ignores it here, with a warning
+                    if setting is not None:
+                        raise ConfigError(
+                            f"{path}.{key}.memory: a reward signal's networks have no "
+                            "memory (ML-Agents ignores it); remove it"
+                        )
+                else:
                     raise unknown_key(f"{path}.{key}", name, NETWORK)
             given[key] = NetworkSettings(**network)
         elif key in checks:

@@ -69,6 +69,7 @@ class RND(Signal):
 
 class Curiosity(Signal):
     stat = "Curiosity"
+    reads_next_obs = True
     FORWARD_WEIGHT, LOSS_MULTIPLIER, HIDDEN = 0.2, 10.0, 256
 
     def __init__(self, spec: BehaviorSpec, settings: RewardSignalSettings) -> None:

@@ -82,6 +82,7 @@ class Signal(nn.Module):
 
     stat = ""
     ignore_done = True  # its value bootstraps at an episode's end (ML-Agents' ignore_done)
+    reads_next_obs = False  # its networks see a step's next observation
 
     def __init__(self, settings: RewardSignalSettings) -> None:
         super().__init__()

@@ -58,11 +58,18 @@ class Signals:
     def __len__(self) -> int:
         return len(self.items)
 
+    @property
+    def terminal_obs(self) -> bool:
+        """Whether a signal reads the observation after an episode's last step: to
+        bootstrap its value there (``ignore_done``) or in its networks."""
+        return any(s.ignore_done or s.reads_next_obs for s in self.items)
+
     def rewards(self, rows: Rows) -> list[tuple[torch.Tensor, float, bool]]:
         """Each signal's reward per row (times its strength), gamma and ``ignore_done``."""
         if not self.items:
             return []
-        steps = self._steps = transitions(rows)
+        reads_next = any(s.reads_next_obs for s in self.items)
+        steps = self._steps = transitions(rows, reads_next)
         for signal in self.items:
             signal.update_normalization(steps)
         self._rewards = [
@@ -117,11 +124,12 @@ class Signals:
             signal.optimizer.load_state_dict(saved["optimizer"])
 
 
-def transitions(rows: Rows) -> Transitions:
-    """Every row's observation, next observation and action: a row's next observation is
-    the next row's, or at a trajectory's end the one the store kept there."""
+def transitions(rows: Rows, next_obs_too: bool = True) -> Transitions:
+    """Every row's observation, next observation (unless no signal reads it: a copy of
+    the buffer's observations) and action: a row's next observation is the next row's,
+    or at a trajectory's end the one the store kept there."""
     next_obs = {}
-    for name, obs in rows.obs.items():
+    for name, obs in rows.obs.items() if next_obs_too else ():
         after = torch.empty_like(obs)
         after[:-1] = obs[1:]
         after[rows.end_rows] = rows.end_obs[name]

@@ -46,6 +46,10 @@ def test_signals_of_other_trainers_are_reported_and_a_bad_key_is_an_error():
         config({"rnd": {"strenght": 0.1}})
     with pytest.raises(ConfigError, match=r"reward_signals.curiosity.gamma"):
         config({"curiosity": {"gamma": 1.5}})
+    memory = {"network_settings": {"memory": {"memory_size": 64, "sequence_length": 8}}}
+    with pytest.raises(ConfigError, match=r"rnd.network_settings.memory: .* have no memory"):
+        config({"rnd": memory})
+    assert config({"rnd": {"network_settings": {"memory": None}}}).unsupported == ()
 
 
 def steps(obs: torch.Tensor, after: torch.Tensor, discrete: torch.Tensor) -> Transitions:
