@@ -52,7 +52,9 @@ def test_an_mlagents_example_config_runs_unchanged(path, ray_session, tmp_path, 
         results_dir=str(tmp_path),
         run_id="example",
         max_steps=300,
-        max_seconds=60,  # a safety stop: the budget is the steps
+        # a safety stop: the budget is the steps. A self-play pair needs two collects of
+        # its time_horizon (1000 exchanges each); 60 s ran out on a loaded CI machine
+        max_seconds=180,
         workers=1,
         progress=False,
     )

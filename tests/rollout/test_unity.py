@@ -274,7 +274,10 @@ def test_a_build_that_never_connects_is_one_line_naming_its_log(
     build.write_text(f"#!/bin/sh\n{script}\n")
     build.chmod(0o755)
     (tmp_path / "logs").mkdir()
-    config = UnityConfig(str(build), timeout_wait=2, log_folder=str(tmp_path / "logs"))
+    # an exit is seen at once, so its wait may be long: a loaded machine may take seconds
+    # to run even this script (2 s failed under the suite)
+    wait = 2 if "timeout_wait" in message else 30
+    config = UnityConfig(str(build), timeout_wait=wait, log_folder=str(tmp_path / "logs"))
     with pytest.raises(UnityStartError) as error:
         UnityInstance(config, allocator).start()
     assert message in str(error.value) and "\n" not in str(error.value)
