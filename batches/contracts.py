@@ -63,6 +63,18 @@ class Actor(Protocol):
     def load_state_dict(self, state: Mapping[str, Any]) -> Any: ...
 
 
+class RecurrentActor(Actor, Protocol):
+    """An actor whose policy has memory (``memory_size`` > 0): it acts from each agent's
+    memory ``[n, memory_size]`` and gives the next one last (``batches.memories``)."""
+
+    @property
+    def memory_size(self) -> int: ...
+
+    def act_recurrent(
+        self, obs: dict[str, np.ndarray], mask: np.ndarray | None, memory: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]: ...
+
+
 ActorFactory = Callable[[str, BehaviorSpec], Actor]  # (behavior name, spec) -> policy
 
 

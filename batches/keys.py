@@ -15,6 +15,9 @@ ACTION_MASK = "action_mask"  # bool [sum(branches)], True = allowed; discrete be
 # float32 [continuous + branches]: log-probability of each action component (each
 # continuous dimension, then each branch) under the acting policy; the action's is their sum
 LOG_PROB = "sample_log_prob"
+# float32 [memory_size]: a recurrent policy's memory as the agent's decision read it (its
+# LSTM's hidden, then cell state; zeros at an episode's start); only for such a policy
+MEMORY = "memory"
 POLICY_VERSION = "policy_version"  # int64: version of the weights that chose the action
 AGENT_ID = "agent_id"  # int64: Unity's agent id (unique within a behavior)
 GROUP_ID = "group_id"  # int64: multi-agent group, 0 = none

@@ -269,9 +269,19 @@ def check_fits(
                 f"says {now}; {advice}"
             )
         wanted = dataclasses.asdict(factory.settings_for(behavior))
-        for key, was in entry["network_settings"].items():
+        saved = {"memory": None, **entry["network_settings"]}  # saved before memory existed
+        for key, was in saved.items():
             if wanted.get(key) == was or key in ACTING_ONLY:
                 continue
+            if key == "memory":  # only the size shapes the weights
+                sizes = [m and m["memory_size"] for m in (was, wanted.get(key))]
+                if sizes[0] == sizes[1]:
+                    continue
+                raise TrainingError(
+                    f"{option}: {name} was trained with network_settings.memory.memory_size "
+                    f"{sizes[0] or 'none (no memory)'}, the config now gives "
+                    f"{sizes[1] or 'none (no memory)'}; {advice}"
+                )
             if key in SQUASHING:
                 was_text = "a tanh-squashed (sac) policy" if was else "an unsquashed policy"
                 raise TrainingError(

@@ -97,6 +97,17 @@ def initial_weights(
             linear(f"{trunk}.{2 * layer}", width, settings.hidden_units)
             width = settings.hidden_units
     width = settings.hidden_units if settings.num_layers else encoded
+    if settings.memory is not None:  # ML-Agents' LSTM: Xavier per gate, forget bias 1
+        units = settings.memory.memory_size // 2
+        for name in ("lstm", "critic_lstm"):
+            for kind, fan_in in (("ih", width), ("hh", units)):
+                bound = math.sqrt(6.0 / (fan_in + units))
+                weight = rng.uniform(-bound, bound, size=(4 * units, fan_in))
+                state[f"{name}.weight_{kind}_l0"] = weight.astype(np.float32)
+                bias = np.zeros(4 * units, np.float32)
+                bias[units : 2 * units] = 1.0  # torch's gate order: input, forget, cell, output
+                state[f"{name}.bias_{kind}_l0"] = bias
+        width = units
     continuous = spec.action_spec.continuous_size
     if continuous:
         linear("mean", width, continuous, gain=0.2)
@@ -185,6 +196,20 @@ class NumpyActor:
         self._log_std_head = layer("log_std_head")
         self._log_std = _as_numpy(state["log_std"]) if "log_std" in state else None
         self._logits = layer("logits")
+        self._lstm = None
+        if "lstm.weight_ih_l0" in state:
+            weights = [_as_numpy(state[f"lstm.{k}_l0"]) for k in ("weight_ih", "weight_hh")]
+            bias = _as_numpy(state["lstm.bias_ih_l0"]) + _as_numpy(state["lstm.bias_hh_l0"])
+            self._lstm = (
+                np.ascontiguousarray(weights[0].T),
+                np.ascontiguousarray(weights[1].T),
+                bias,
+            )
+
+    @property
+    def memory_size(self) -> int:
+        """The recurrent state per agent (0: none): LSTM hidden and cell, side by side."""
+        return 0 if self._lstm is None else 2 * self._lstm[1].shape[0]
 
     def to_unity(self, continuous: np.ndarray) -> np.ndarray:
         return to_unity(continuous, self.settings)
@@ -194,6 +219,13 @@ class NumpyActor:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(continuous [n, c] float32, discrete [n, branches] int64, log-probs
         [n, c + branches] float32), as ``ActorCritic.act``."""
+        return self.act_recurrent(obs, mask, None)[:3]
+
+    def act_recurrent(
+        self, obs: dict[str, np.ndarray], mask: np.ndarray | None, memory: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """``act`` with each agent's ``memory`` ``[n, memory_size]`` (None: zeros), and
+        the memory after it last (None for a policy without memory)."""
         n = len(next(iter(obs.values())))
         parts = []
         for index, (name, norm) in enumerate(zip(self.sensor_names, self._norms, strict=True)):
@@ -208,6 +240,9 @@ class NumpyActor:
         for weight, bias in self._layers:
             hidden = hidden @ weight + bias
             hidden *= 0.5 * (1.0 + np.tanh(0.5 * hidden))  # Swish: x sigmoid(x), no overflow
+        next_memory = None
+        if self._lstm is not None:
+            hidden, next_memory = self._lstm_step(hidden, memory)
         log_probs = [np.zeros((n, 0), np.float32)]
         continuous = np.zeros((n, 0), np.float32)
         if self._mean is not None:
@@ -248,4 +283,23 @@ class NumpyActor:
                 picks.append(pick)
             discrete = np.stack(picks, axis=-1).astype(np.int64)
         log_prob = np.concatenate(log_probs, axis=1).astype(np.float32)
-        return continuous.astype(np.float32), discrete, log_prob
+        return continuous.astype(np.float32), discrete, log_prob, next_memory
+
+    def _lstm_step(self, x: np.ndarray, memory: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """One step of ``torch.nn.LSTM`` (gates input, forget, cell, output); the memory
+        is the hidden state, then the cell state, as ML-Agents lays it out."""
+        assert self._lstm is not None
+        w_ih, w_hh, bias = self._lstm
+        units = w_hh.shape[0]
+        if memory is None:
+            memory = np.zeros((len(x), 2 * units), np.float32)
+        h, c = memory[:, :units], memory[:, units:]
+        gates = x @ w_ih + h @ w_hh + bias
+        i, f, g, o = (gates[:, k * units : (k + 1) * units] for k in range(4))
+        c = _sigmoid(f) * c + _sigmoid(i) * np.tanh(g)
+        h = _sigmoid(o) * np.tanh(c)
+        return h, np.concatenate([h, c], axis=1).astype(np.float32)
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (1.0 + np.tanh(0.5 * x))

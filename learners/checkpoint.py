@@ -32,7 +32,7 @@ import torch
 
 from batches.specs import spec_from_dict, spec_to_dict
 from learners.policies import ActorCritic
-from learners.settings import NetworkSettings
+from learners.settings import MemorySettings, NetworkSettings
 
 __all__ = ["load", "networks", "newest_first", "save", "spec_from_dict", "spec_to_dict"]
 
@@ -130,7 +130,7 @@ def networks(state: dict[str, Any]) -> dict[str, ActorCritic]:
     """Rebuild each behavior's network with its trained weights (for export and replay)."""
     built = {}
     for behavior, entry in state["behaviors"].items():
-        settings = NetworkSettings(**entry["network_settings"])
+        settings = network_settings(entry["network_settings"])
         network = ActorCritic(spec_from_dict(entry["spec"]), settings)
         network.load_state_dict(entry["network"])
         built[behavior] = network.eval()
@@ -139,3 +139,9 @@ def networks(state: dict[str, Any]) -> dict[str, ActorCritic]:
 
 def network_settings_dict(settings: NetworkSettings) -> dict[str, Any]:
     return dataclasses.asdict(settings)
+
+
+def network_settings(saved: dict[str, Any]) -> NetworkSettings:
+    """``network_settings_dict``'s inverse (the memory section a dataclass again)."""
+    memory = saved.get("memory")
+    return NetworkSettings(**{**saved, "memory": MemorySettings(**memory) if memory else None})

@@ -36,8 +36,8 @@ from learners.config_keys import (
     EXTRINSIC,
     INTRINSIC,
     INTRINSIC_TRAINERS,
+    MEMORY_TRAINERS,
     NETWORK,
-    NETWORK_UNSUPPORTED,
     REWARD_UNSUPPORTED,
     RUN_KEYS,
     RUN_SETTINGS,
@@ -138,13 +138,13 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
 
     net_path = f"{path}.network_settings"
     for key, value in section(net_path, data.get("network_settings")).items():
-        if key in NETWORK:
-            layer.network[key] = NETWORK[key](f"{net_path}.{key}", value)
-        elif key in NETWORK_UNSUPPORTED:
-            if not _ignored_value(value, NETWORK_UNSUPPORTED[key]):
-                unsupported.append(f"{net_path}.{key}")
+        if key not in NETWORK:
+            raise unknown_key(net_path, key, NETWORK)
+        parsed = NETWORK[key](f"{net_path}.{key}", value)
+        if key == "memory" and parsed is not None and trainer_type not in MEMORY_TRAINERS:
+            unsupported.append(f"{net_path}.{key}")
         else:
-            raise unknown_key(net_path, key, {*NETWORK, *NETWORK_UNSUPPORTED})
+            layer.network[key] = parsed
 
     reward_path = f"{path}.reward_signals"
     if "reward_signals" in data:

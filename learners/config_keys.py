@@ -13,6 +13,7 @@ from typing import Any
 
 from learners.settings import (
     BehavioralCloningSettings,
+    MemorySettings,
     NetworkSettings,
     RewardSignalSettings,
     SelfPlaySettings,
@@ -142,6 +143,22 @@ ON_POLICY: dict[str, Check] = {
 # ML-Agents keys we do not implement, each with the value that asks for what we do anyway
 # (not reported; ALWAYS: reported whatever the value)
 ALWAYS = object()
+MEMORY_TRAINERS = ("ppo",)  # the trainers with network_settings.memory (others report it)
+
+
+def _memory(path: str, value: object) -> MemorySettings | None:
+    """``memory``: ``memory_size`` (even: an LSTM's cell and hidden state halves) and
+    ``sequence_length``, ML-Agents' defaults 128 and 64; ``null``: none."""
+    if value is None:
+        return None
+    given = checked(path, value, {"memory_size": POSITIVE_INT, "sequence_length": POSITIVE_INT})
+    if given.get("memory_size", 2) % 2:
+        raise ConfigError(
+            f"{path}.memory_size: expected an even number, got {given['memory_size']}"
+        )
+    return MemorySettings(**given)
+
+
 NETWORK: dict[str, Check] = {
     "hidden_units": POSITIVE_INT,
     "num_layers": POSITIVE_INT,
@@ -149,9 +166,7 @@ NETWORK: dict[str, Check] = {
     "goal_conditioning_type": _choice("hyper", "none"),
     "vis_encode_type": _choice(*VIS_ENCODE_TYPES),
     "deterministic": _bool,
-}
-NETWORK_UNSUPPORTED: dict[str, object] = {
-    "memory": None,
+    "memory": _memory,
 }
 
 
@@ -237,14 +252,14 @@ def intrinsic_signal(path: str, kind: str, value: object) -> RewardSignalSetting
         if key == "network_settings":
             network = {}
             for name, setting in section(f"{path}.{key}", item).items():
-                if name in NETWORK:
-                    network[name] = NETWORK[name](f"{path}.{key}.{name}", setting)
-                elif name == "memory":  # ML-Agents ignores it here, with a warning
+                if name == "memory":  # ML-Agents ignores it here, with a warning
                     if setting is not None:
                         raise ConfigError(
                             f"{path}.{key}.memory: a reward signal's networks have no "
                             "memory (ML-Agents ignores it); remove it"
                         )
+                elif name in NETWORK:
+                    network[name] = NETWORK[name](f"{path}.{key}.{name}", setting)
                 else:
                     raise unknown_key(f"{path}.{key}", name, NETWORK)
             given[key] = NetworkSettings(**network)

@@ -160,6 +160,14 @@ class ActorCritic(nn.Module):
         self.trunk = _mlp(encoded, settings)
         self.critic_trunk = _mlp(encoded, settings)
         width = settings.hidden_units if settings.num_layers else encoded
+        # ML-Agents' memory: an LSTM after each trunk, memory_size // 2 units (hidden and
+        # cell state side by side make the memory a worker carries per agent)
+        self.lstm = self.critic_lstm = None
+        if settings.memory is not None:
+            units = settings.memory.memory_size // 2
+            self.lstm = nn.LSTM(width, units, batch_first=True)
+            self.critic_lstm = nn.LSTM(width, units, batch_first=True)
+            width = units
         self.continuous = spec.action_spec.continuous_size
         self.branches = tuple(spec.action_spec.discrete_branches)
         self.mean = nn.Linear(width, self.continuous) if self.continuous else None
@@ -204,8 +212,43 @@ class ActorCritic(nn.Module):
         conditioned = (other.unsqueeze(-1) * goal.unsqueeze(-2)).flatten(-2)
         return torch.cat([conditioned, goal], dim=-1)
 
+    @property
+    def memory_size(self) -> int:
+        """The memory a worker carries per agent (0: none): the actor LSTM's state."""
+        return 0 if self.lstm is None else 2 * self.lstm.hidden_size
+
     def features(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         return self.trunk(self.encode(obs))
+
+    @staticmethod
+    def recur(
+        lstm: nn.LSTM, x: torch.Tensor, memory: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``lstm`` over ``x`` ``[B, L, H]`` (or one step, ``[B, H]``) from ``memory``
+        ``[B, 2 * units]`` (hidden state, then cell state; None: zeros): the outputs and
+        the memory after the last step."""
+        step = x.dim() == 2
+        if step:
+            x = x.unsqueeze(1)
+        units = lstm.hidden_size
+        if memory is None:
+            memory = x.new_zeros(x.shape[0], 2 * units)
+        out, (h, c) = lstm(x, lstm_state(memory, units))
+        return (out.squeeze(1) if step else out), torch.cat([h[0], c[0]], dim=-1)
+
+    def sequence_features(
+        self, obs: dict[str, torch.Tensor], memory: torch.Tensor, critic_memory: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Actor and critic features of sequences: ``obs`` ``[B, L, ...]``, each LSTM from
+        its memory at the sequences' first steps ``[B, memory_size]``."""
+        assert self.lstm is not None and self.critic_lstm is not None
+        b, length = next(iter(obs.values())).shape[:2]
+        encoded = self.encode({n: o.flatten(0, 1) for n, o in obs.items()})
+        actor = self.trunk(encoded).unflatten(0, (b, length))
+        critic = self.critic_trunk(encoded).unflatten(0, (b, length))
+        return self.recur(self.lstm, actor, memory)[0], self.recur(
+            self.critic_lstm, critic, critic_memory
+        )[0]
 
     def state_value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """V(obs) with the batch dims kept (no trailing 1)."""
@@ -216,6 +259,10 @@ class ActorCritic(nn.Module):
         intrinsic signal's value head each, ``learners/intrinsic.py``) ``[..., 1 + H]``,
         the extrinsic value first."""
         critic = self.critic_trunk(encoded)
+        return self.value_head(critic, heads)
+
+    def value_head(self, critic: torch.Tensor, heads: Sequence[nn.Module] = ()) -> torch.Tensor:
+        """V from the critic's features (its trunk's, or its LSTM's output)."""
         value = self.value(critic)
         if not heads:
             return value.squeeze(-1)
@@ -242,10 +289,24 @@ class ActorCritic(nn.Module):
         obs: dict[str, torch.Tensor],
         mask: torch.Tensor | None = None,
         deterministic: bool = False,
+        memory: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(continuous [n, c], discrete [n, branches] int64, log-probs [n, c + branches])
-        for a batch: one log-probability per action component (``LOG_PROB``)."""
-        hidden = self.features(obs)
+        for a batch: one log-probability per action component (``LOG_PROB``). With memory,
+        from each agent's ``memory`` (None: zeros); ``act_recurrent`` also gives the next."""
+        return self.act_recurrent(obs, mask, memory, deterministic)[:3]
+
+    @torch.no_grad()
+    def act_recurrent(
+        self,
+        obs: dict[str, torch.Tensor],
+        mask: torch.Tensor | None,
+        memory: torch.Tensor | None,
+        deterministic: bool = False,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        hidden, next_memory = self.features(obs), None
+        if self.lstm is not None:
+            hidden, next_memory = self.recur(self.lstm, hidden, memory)
         n = hidden.shape[0]
         log_probs = [torch.zeros(n, 0, device=hidden.device)]
         continuous = torch.zeros(n, 0, device=hidden.device)
@@ -278,7 +339,7 @@ class ActorCritic(nn.Module):
                 log_probs.append(branch_logp.gather(-1, pick.unsqueeze(-1)))
                 picks.append(pick)
             discrete = torch.stack(picks, dim=-1)
-        return continuous, discrete, torch.cat(log_probs, dim=-1)
+        return continuous, discrete, torch.cat(log_probs, dim=-1), next_memory
 
     def evaluate(
         self,
@@ -287,13 +348,19 @@ class ActorCritic(nn.Module):
         discrete: torch.Tensor | None,
         mask: torch.Tensor | None = None,
         heads: Sequence[nn.Module] = (),
+        memories: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(log-probs [..., c + branches] as ``act`` gives them, entropy, value) of given
         actions under the current weights (what PPO's loss needs); batch dims are kept.
+        With memory: of sequences ``[B, L, ...]`` from ``memories`` (the actor's and the
+        critic's at each sequence's start, ``[B, memory_size]`` each).
         The densities are written out (the Gaussian's, and each branch's masked softmax):
         building ``torch.distributions`` objects cost more than the network per minibatch."""
-        encoded = self.encode(obs)  # once for both trunks: images cost the most here
-        hidden = self.trunk(encoded)
+        if memories is not None:
+            hidden, critic = self.sequence_features(obs, *memories)
+        else:
+            encoded = self.encode(obs)  # once for both trunks: images cost the most here
+            hidden, critic = self.trunk(encoded), self.critic_trunk(encoded)
         lead = hidden.shape[:-1]
         log_probs = [torch.zeros(*lead, 0, device=hidden.device)]
         entropy = torch.zeros(lead, device=hidden.device)
@@ -322,7 +389,7 @@ class ActorCritic(nn.Module):
                 # masked entries add 0 (and no NaN gradient: 0 * -inf never happens)
                 finite = torch.where(branch.isfinite(), branch, 0.0)
                 entropy = entropy - (branch.exp() * finite).sum(-1)
-        return torch.cat(log_probs, dim=-1), entropy, self.value_of(encoded, heads)
+        return torch.cat(log_probs, dim=-1), entropy, self.value_head(critic, heads)
 
 
 class TorchActor:
@@ -338,14 +405,32 @@ class TorchActor:
     def to_unity(self, continuous: np.ndarray) -> np.ndarray:
         return to_unity(continuous, self.network.settings)
 
+    @property
+    def memory_size(self) -> int:
+        return self.network.memory_size
+
     def act(
         self, obs: dict[str, np.ndarray], mask: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.act_recurrent(obs, mask, None)[:3]
+
+    def act_recurrent(
+        self, obs: dict[str, np.ndarray], mask: np.ndarray | None, memory: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         tensors = {name: torch.from_numpy(value) for name, value in obs.items()}
         torch_mask = torch.from_numpy(mask) if mask is not None else None
+        torch_memory = torch.from_numpy(memory) if memory is not None else None
         deterministic = self.network.settings.deterministic
-        continuous, discrete, log_prob = self.network.act(tensors, torch_mask, deterministic)
-        return continuous.numpy(), discrete.numpy(), log_prob.numpy()
+        acted = self.network.act_recurrent(tensors, torch_mask, torch_memory, deterministic)
+        return tuple(None if t is None else t.numpy() for t in acted)  # type: ignore[return-value]
+
+
+def lstm_state(memory: torch.Tensor, units: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``nn.LSTM``'s (h0, c0) from memories ``[B, 2 * units]`` (hidden, then cell state)."""
+    return (
+        memory[:, :units].unsqueeze(0).contiguous(),
+        memory[:, units:].unsqueeze(0).contiguous(),
+    )
 
 
 def seeded_network(

@@ -263,10 +263,7 @@ class PPO:
         (torchrl's vectorized estimator), which stops at ``done`` and bootstraps from the
         next observation unless ``terminated``; a step's next value is the next row's,
         except at a truncated end, where it is its kept next observation's."""
-        value = self.values(rows.obs)  # [N, 1 + intrinsic signals]
-        next_value = torch.zeros_like(value)
-        next_value[:-1] = value[1:]
-        next_value[rows.end_rows] = self.values(rows.end_obs)
+        value, next_value = self.value_estimates(rows)
         advantage, targets = torch.zeros_like(value[:, 0]), []
         extrinsic = (rows.reward * self.settings.reward_strength, self.settings.gamma, False)
         signals = self.signals.rewards(rows)  # after the extrinsic one
@@ -281,6 +278,15 @@ class PPO:
         if len(targets) == 1:  # the extrinsic signal alone: [N] each
             return value[:, 0], advantage, targets[0]
         return value, advantage, torch.stack(targets, dim=-1)
+
+    def value_estimates(self, rows: Rows) -> tuple[torch.Tensor, torch.Tensor]:
+        """V of each row and of what follows it ``[N, 1 + intrinsic signals]`` each: the
+        next row's, or at a truncated end its kept next observation's."""
+        value = self.values(rows.obs)
+        next_value = torch.zeros_like(value)
+        next_value[:-1] = value[1:]
+        next_value[rows.end_rows] = self.values(rows.end_obs)
+        return value, next_value
 
     def gae(
         self,

@@ -16,6 +16,15 @@ from batches.parameters import Curriculum
 
 
 @dataclass(frozen=True)
+class MemorySettings:
+    """ML-Agents ``network_settings.memory``: an LSTM after the trunk, trained on
+    sequences of ``sequence_length`` steps."""
+
+    memory_size: int = 128  # the LSTM's cell and hidden state together: memory_size // 2 units
+    sequence_length: int = 64
+
+
+@dataclass(frozen=True)
 class NetworkSettings:
     """ML-Agents ``network_settings``: hidden units and layers of the shared trunk."""
 
@@ -32,6 +41,7 @@ class NetworkSettings:
     # act with the Gaussian's mean and the likeliest discrete actions (ML-Agents' key; the
     # CLI's --deterministic sets it for every behavior); it changes no weight
     deterministic: bool = False
+    memory: MemorySettings | None = None  # the policy and the critic each get an LSTM
     # Not config keys: set by the learner's policy factory for SAC behaviors.
     tanh_squash: bool = False  # continuous actions are tanh(Gaussian sample)
     conditional_sigma: bool = False  # log-std from a head on the trunk, not a parameter

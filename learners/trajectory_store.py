@@ -58,6 +58,10 @@ class Rows:
     train: torch.Tensor  # [n] bool: counts in the loss (else context for the estimator)
     end_rows: torch.Tensor  # [e] int64: the ends that bootstrap, in row order
     end_obs: dict[str, torch.Tensor]  # [e, ...]: their next observations
+    # a recurrent policy's only: the memory each step's decision read [n, memory_size],
+    # and the agent (worker and Unity id in one int64) [n]
+    memory: torch.Tensor | None = None
+    agent: torch.Tensor | None = None
     # groupmates only: "obs/<sensor>" [n, M, ...], "continuous", "discrete", "present",
     # "reward" [n, M]; at the ends "obs/<sensor>" and "present"
     groupmates: dict[str, torch.Tensor] = field(default_factory=dict)
@@ -153,6 +157,8 @@ class TrajectoryStore:
             end_obs=end_obs,
             groupmates=mates,
             end_groupmates=end_mates,
+            memory=column("memory"),
+            agent=column("agent"),
         )
 
     def nbytes(self) -> int:
@@ -174,6 +180,9 @@ class TrajectoryStore:
         fields["done"] = segment[keys.NEXT, keys.DONE].reshape(-1)
         fields["terminated"] = segment[keys.NEXT, keys.TERMINATED].reshape(-1)
         fields["train"] = keep.to(torch.bool)
+        if (memory := segment.get(keys.MEMORY, None)) is not None:
+            fields["memory"] = memory
+            fields["agent"] = segment[keys.WORKER] * 2**32 + segment[keys.AGENT_ID]
         if self.groupmates:
             mates = segment[keys.GROUPMATES]
             fields |= {"mate_obs/" + n: v for n, v in mates[keys.OBS].items()}

@@ -20,13 +20,14 @@ import time
 import uuid
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
 from batches import specs
-from batches.contracts import Actor, ActorFactory, Snapshot, Weights
+from batches.contracts import Actor, ActorFactory, RecurrentActor, Snapshot, Weights
+from batches.memories import AgentMemories
 from batches.parameters import Values
 from batches.segment import Segment
 from rollout.horizons import Horizons
@@ -90,6 +91,7 @@ class Collector:
         self.worker = worker
         self.builders: dict[str, SegmentBuilder] = {}
         self.actors: dict[str, Actor] = {}
+        self.memories: dict[str, AgentMemories] = {}  # behaviors whose policy has memory
         self.weights: Weights = {}
         self.version = 0
         self._snapshots: OrderedDict[str, Any] = OrderedDict()  # key -> state, oldest first
@@ -214,6 +216,8 @@ class Collector:
                 builder = self._add_behavior(behavior, spec)
             self._agents_seen = self._agents_seen or bool(len(decisions) or len(terminals))
             builder.observe(decisions, terminals)
+            if len(terminals) and (memories := self.memories.get(behavior)) is not None:
+                memories.forget(np.asarray(terminals.agent_id, np.int64))
             finished = builder.collect(self.metrics.env_steps)
             if finished is not None:
                 pieces.setdefault(behavior, []).append(finished)
@@ -228,14 +232,21 @@ class Collector:
 
     def _add_behavior(self, behavior: str, spec: BehaviorSpec) -> SegmentBuilder:
         pixels = self.unity.png_sensors(behavior) or frozenset()
-        builder = SegmentBuilder(
-            behavior, spec, self.horizons(behavior), worker=self.worker, pixel_sensors=pixels
-        )
-        self.builders[behavior] = builder
-        self.metrics.specs[behavior] = specs.spec_to_dict(spec)
         actor = self.actor_factory(behavior, spec)
         self._load(behavior, actor)
         self.actors[behavior] = actor
+        if memory := getattr(actor, "memory_size", 0):
+            self.memories[behavior] = AgentMemories(memory)
+        builder = SegmentBuilder(
+            behavior,
+            spec,
+            self.horizons(behavior),
+            worker=self.worker,
+            pixel_sensors=pixels,
+            memory_size=memory,
+        )
+        self.builders[behavior] = builder
+        self.metrics.specs[behavior] = specs.spec_to_dict(spec)
         self.metrics.behaviors[behavior] = BehaviorStats()
         return builder
 
@@ -244,16 +255,27 @@ class Collector:
         branches = spec.action_spec.discrete_branches
         mask = allowed_mask(decisions, sum(branches)) if branches else None
         actor = self.actors[behavior]
-        continuous, discrete, log_prob = actor.act(obs, mask)
+        memory = None
+        if (memories := self.memories.get(behavior)) is not None:
+            agents = np.asarray(decisions.agent_id, np.int64)
+            memory = memories.get(agents)
+            continuous, discrete, log_prob, after = cast("RecurrentActor", actor).act_recurrent(
+                obs, mask, memory
+            )
+            memories.put(agents, after)
+        else:
+            continuous, discrete, log_prob = actor.act(obs, mask)
         self.unity.set_actions(
             behavior,
             ActionTuple(continuous=actor.to_unity(continuous), discrete=discrete.astype(np.int32)),
         )
-        return Decisions(continuous, discrete, log_prob)
+        return Decisions(continuous, discrete, log_prob, memory)
 
     def _recover(self, error: BaseException) -> None:
         """The player failed: drop partial rows (never sent), restart on a fresh port."""
         dropped = sum(builder.drop_partial() for builder in self.builders.values())
+        for memories in self.memories.values():
+            memories.clear()
         self.metrics.dropped_steps += dropped
         log.warning("worker %d: Unity failed (%s); dropped %d steps", self.worker, error, dropped)
         self.unity.restart(f"{type(error).__name__}: {error}")
@@ -268,6 +290,8 @@ class Collector:
         if reset and self._started:
             dropped = sum(b.drop_partial(lesson_reset=True) for b in self.builders.values())
             self.metrics.dropped_steps += dropped
+            for memories in self.memories.values():
+                memories.clear()
             self.unity.reset()
 
     # --- metrics ------------------------------------------------------------------------

@@ -40,6 +40,7 @@ class Decisions:
     continuous: np.ndarray  # float32 (n, continuous size)
     discrete: np.ndarray  # int64 (n, branches)
     log_prob: np.ndarray  # float32 (n, continuous size + branches): one per component
+    memory: np.ndarray | None = None  # float32 (n, memory size): what a recurrent policy read
 
 
 @dataclass
@@ -69,9 +70,12 @@ class SegmentBuilder:
         worker: int = 0,
         gone_after: int | None = None,
         pixel_sensors: frozenset[str] = frozenset(),
+        memory_size: int = 0,
     ) -> None:
         """``pixel_sensors``: sensors whose values are k/255 (Unity sent them as PNG), kept
-        as uint8 0..255 from here to the learner: a quarter of float32's bytes."""
+        as uint8 0..255 from here to the learner: a quarter of float32's bytes.
+        ``memory_size``: a recurrent policy's, whose memory each step keeps (``MEMORY``)."""
+        self._memory = memory_size
         self.behavior = behavior
         self.spec = spec
         self._spec_dict = specs.spec_to_dict(spec)  # travels with each segment to the learner
@@ -124,6 +128,9 @@ class SegmentBuilder:
             "ep_length": np.zeros(s, np.int64),
             "agent": np.full(s, -1, np.int64),  # agent id per slot, -1 = free
         }
+        if self._memory:
+            fields["memory"] = np.zeros((s, t, self._memory), np.float32)
+            fields["p_memory"] = np.zeros((s, self._memory), np.float32)
         for name, shape in self._sensors:
             dtype = np.uint8 if name in self._pixels else np.float32
             fields[f"obs/{name}"] = np.zeros((s, t, *shape), dtype)
@@ -238,6 +245,8 @@ class SegmentBuilder:
             f[f"next/{name}"][slots, t] = after
         for row in ("cont", "disc", "mask", "logp", "version", "group"):
             f[row][slots, t] = f[f"p_{row}"][slots]
+        if self._memory:
+            f["memory"][slots, t] = f["p_memory"][slots]
         f["reward"][slots, t] = reward
         f["group_reward"][slots, t] = group_reward
         f["done"][slots, t] = done
@@ -275,6 +284,8 @@ class SegmentBuilder:
         f["p_cont"][slots] = chosen.continuous
         f["p_disc"][slots] = chosen.discrete
         f["p_logp"][slots] = chosen.log_prob
+        if self._memory and chosen.memory is not None:
+            f["p_memory"][slots] = chosen.memory
         f["p_version"][slots] = policy_version
         f["p_group"][slots] = decisions.group_id
         if self._mask_size:
@@ -346,6 +357,8 @@ class SegmentBuilder:
         }
         if self._mask_size:
             data[keys.ACTION_MASK] = take("mask")
+        if self._memory:
+            data[keys.MEMORY] = take("memory")
         data[keys.GROUPMATES], data[keys.NEXT][keys.GROUPMATES] = self.groups.take(row_of, time)
         self.counters.rows += len(slots)
         self.counters.emitted_steps += n

@@ -21,7 +21,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo"
 
 
 def train_pyramids(tmp_path: Path, data: dict) -> list[str]:
-    """ML-Agents' ``data`` with summaries every 1,000 steps, 8,200 steps on unitysim
+    """ML-Agents' ``data`` with summaries every 1,000 steps, 4,200 steps on unitysim
     Pyramids (buffer_size 2048: updates, with summaries between them); the scalar tags
     its TensorBoard folder holds."""
     data["behaviors"]["Pyramids"]["summary_freq"] = 1000
@@ -32,7 +32,7 @@ def train_pyramids(tmp_path: Path, data: dict) -> list[str]:
         config=str(path),
         results_dir=str(tmp_path),
         run_id="signals",
-        max_steps=8_200,
+        max_steps=4_200,
         workers=1,
         progress=False,
     )

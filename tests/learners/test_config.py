@@ -340,14 +340,12 @@ torch_settings: {device: cpu}
 """
     with caplog.at_level(logging.WARNING, logger="learners.config"):
         config = parse(text)
-    assert set(config.unsupported) == {
-        "default_settings.threaded",
-        "behaviors.Pyramids.network_settings.memory",
-    }
+    assert set(config.unsupported) == {"default_settings.threaded"}
+    assert config.behaviors["Pyramids"].network_settings.memory is not None
     assert len(config.unsupported) == len(set(config.unsupported))
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1
-    assert "behaviors.Pyramids.network_settings.memory" in warnings[0].getMessage()
+    assert "default_settings.threaded" in warnings[0].getMessage()
     values = {k: v[0].value for k, v in config.environment_parameters.items()}  # one lesson
     assert values == {"mass": Constant(1.5), "scale": Constant(1.0), "wall": Constant(1.0)} | {
         "gravity": Uniform(7.0, 12.0, UNSEEDED)  # the driver seeds it from the run's seed

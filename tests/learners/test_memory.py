@@ -1,0 +1,235 @@
+"""``network_settings.memory``: the config, the LSTM acting in numpy as in torch, sequences,
+the critic's memory along an agent's pieces, and PPO learning what only memory solves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from mlagents_envs.base_env import ActionSpec, BehaviorSpec
+
+from batches import keys
+from learners.acting import NumpyActor
+from learners.config import ConfigError, load_config
+from learners.policies import ActorCritic, numpy_state
+from learners.ppo import PPO
+from learners.recurrent_ppo import RecurrentPPO, sequences
+from learners.settings import Hyperparameters, MemorySettings, NetworkSettings, TrainerSettings
+from tests.learners.fakes import segment, vector_spec
+
+ANCHORS = Path(__file__).resolve().parents[3] / "shared" / "anchors" / "mlagents-configs"
+
+
+def write(tmp_path: Path, network: str, trainer: str = "ppo") -> Path:
+    path = tmp_path / "config.yaml"
+    path.write_text(
+        f"behaviors:\n  Hallway:\n    trainer_type: {trainer}\n    network_settings:\n{network}"
+    )
+    return path
+
+
+def test_the_config_reads_memory_with_mlagents_defaults(tmp_path):
+    config = load_config(write(tmp_path, "      memory:\n        memory_size: 32\n"))
+    memory = config.behaviors["Hallway"].network_settings.memory
+    assert memory == MemorySettings(memory_size=32, sequence_length=64)
+    assert config.unsupported == ()
+    config = load_config(write(tmp_path, "      memory:\n"))  # an empty section: none
+    assert config.behaviors["Hallway"].network_settings.memory is None
+
+
+@pytest.mark.parametrize(
+    ("network", "message"),
+    [
+        ("      memory:\n        memory_size: 33\n", "memory.memory_size: expected an even number"),
+        ("      memory:\n        sequence_length: 0\n", "memory.sequence_length: expected a posi"),
+        ("      memory:\n        memory_sise: 8\n", "did you mean 'memory_size'?"),
+    ],
+)
+def test_a_bad_memory_is_one_line(tmp_path, network, message):
+    with pytest.raises(ConfigError, match=message) as error:
+        load_config(write(tmp_path, network))
+    assert "\n" not in str(error.value)
+
+
+def test_memory_under_a_trainer_without_it_is_reported(tmp_path):
+    config = load_config(write(tmp_path, "      memory:\n        memory_size: 32\n", "sac"))
+    assert config.unsupported == ("behaviors.Hallway.network_settings.memory",)
+    assert config.behaviors["Hallway"].network_settings.memory is None
+
+
+@pytest.mark.skipif(not ANCHORS.is_dir(), reason="ML-Agents' configs are not beside the repo")
+def test_mlagents_ppo_hallway_config_runs_with_memory():
+    config = load_config(ANCHORS / "ppo" / "Hallway.yaml")
+    assert config.unsupported == ()
+    assert config.behaviors["Hallway"].network_settings.memory == MemorySettings(128, 64)
+
+
+def memory_network(spec: BehaviorSpec, size: int = 16, length: int = 4, **kw) -> ActorCritic:
+    settings = NetworkSettings(hidden_units=16, memory=MemorySettings(size, length), **kw)
+    torch.manual_seed(0)
+    return ActorCritic(spec, settings)
+
+
+@pytest.mark.parametrize("actions", [(0, (3, 2)), (2, ())], ids=["discrete", "continuous"])
+def test_the_numpy_lstm_acts_as_torchs(actions):
+    spec = vector_spec(6, actions[0], actions[1])
+    network = memory_network(spec, deterministic=True)
+    for p in network.parameters():  # away from the initial weights' zeros
+        p.data.add_(0.1 * torch.randn_like(p))
+    actor = NumpyActor(spec, network.settings, numpy_state(network))
+    assert actor.memory_size == network.memory_size == 16
+    rng = np.random.default_rng(0)
+    memory_np = memory_torch = None
+    for _ in range(3):
+        obs = {"vector": rng.normal(size=(5, 6)).astype(np.float32)}
+        *acted_np, memory_np = actor.act_recurrent(obs, None, memory_np)
+        *acted, memory_torch = network.act_recurrent(
+            {"vector": torch.from_numpy(obs["vector"])}, None, memory_torch, True
+        )
+        for mine, theirs in zip(acted_np, acted, strict=True):
+            np.testing.assert_allclose(mine, theirs.numpy(), atol=1e-5)
+        np.testing.assert_allclose(memory_np, memory_torch.numpy(), atol=1e-5)
+    assert np.abs(memory_np).max() > 0.01
+
+
+def test_pieces_are_cut_into_sequences_padded_at_their_end():
+    done = torch.tensor([0, 0, 0, 0, 1, 0, 0, 1], dtype=torch.bool)  # pieces of 5 and 3
+    seqs = sequences(done, 2)
+    assert seqs.rows.tolist() == [[0, 1], [2, 3], [4, 4], [5, 6], [7, 7]]
+    assert seqs.valid.tolist() == [[1, 1], [1, 1], [1, 0], [1, 1], [1, 0]]
+    assert seqs.piece.tolist() == [0, 0, 0, 1, 1] and seqs.chunk.tolist() == [0, 1, 2, 0, 1]
+
+
+def trajectory(network: ActorCritic, steps: int, seed: int = 0) -> tuple[list, torch.Tensor]:
+    """One agent's steps as acted (observations, the memory each read), from an episode's start."""
+    torch.manual_seed(seed)
+    obs = [torch.randn(1, 4) for _ in range(steps + 1)]
+    memories, memory = [], torch.zeros(1, network.memory_size)
+    for step in range(steps):
+        memories.append(memory)
+        memory = network.act_recurrent({"vector": obs[step]}, None, memory)[3]
+    return obs, torch.cat(memories)
+
+
+def pieces(
+    spec: BehaviorSpec, obs: list, memories: torch.Tensor, start: int, stop: int, agent: int = 7
+):
+    """Steps ``start:stop`` of the trajectory as one worker piece, cut there (truncated)."""
+    piece = segment(spec, 1, stop - start)
+    piece[keys.OBS, "vector"] = torch.cat(obs[start:stop])
+    piece[keys.NEXT, keys.OBS, "vector"] = torch.cat(obs[start + 1 : stop + 1])
+    piece[keys.MEMORY] = memories[start:stop]
+    piece[keys.AGENT_ID] = torch.full((stop - start,), agent)
+    piece[keys.WORKER] = torch.zeros(stop - start, dtype=torch.int64)
+    return piece
+
+
+def ppo(network: ActorCritic, buffer_size: int = 8, **hyper) -> RecurrentPPO:
+    h = Hyperparameters(buffer_size=buffer_size, batch_size=8, **hyper)
+    return RecurrentPPO(network, TrainerSettings(hyperparameters=h, network_settings=network.settings))
+
+
+def test_the_critic_runs_along_an_agents_pieces_across_updates():
+    """An agent's 12 steps valued as one piece, as three pieces in one update, and as three
+    pieces in three updates: the critic's memory runs on, so the values agree."""
+    spec = vector_spec(4, 0, (2,))
+    network = memory_network(spec)
+    obs, memories = trajectory(network, 12)
+    whole = ppo(network)
+    whole.store.add(pieces(spec, obs, memories, 0, 12))
+    expected = whole.value_estimates(whole.store.take())[0]
+    split = ppo(network)
+    for start in (0, 4, 8):
+        split.store.add(pieces(spec, obs, memories, start, start + 4))
+    torch.testing.assert_close(split.value_estimates(split.store.take())[0], expected)
+    apart = ppo(network)
+    got = []
+    for start in (0, 4, 8):
+        apart.store.add(pieces(spec, obs, memories, start, start + 4))
+        got.append(apart.value_estimates(apart.store.take())[0])
+    torch.testing.assert_close(torch.cat(got), expected)
+    # another agent's piece, or an episode's first (actor memory zeros), starts from zeros
+    fresh = ppo(network)
+    fresh.store.add(pieces(spec, obs, memories, 0, 4))
+    fresh.value_estimates(fresh.store.take())
+    fresh.store.add(pieces(spec, obs, memories, 4, 8, agent=8))
+    other = fresh.value_estimates(fresh.store.take())[0]
+    alone = ppo(network)
+    alone.store.add(pieces(spec, obs, memories, 4, 8, agent=8))
+    torch.testing.assert_close(other, alone.value_estimates(alone.store.take())[0])
+    assert not torch.allclose(other, expected[4:8])
+
+
+# ---- learning: recall a cue shown only at an episode's first step ---------------------
+
+
+CUE_STEPS = 4  # the cue at step 0, blanks, then the choice at the last step
+
+
+def recall_episodes(network: ActorCritic, agents: int, version: int, rng: torch.Generator):
+    """``agents`` episodes of the recall task acted by ``network`` (from zero memories),
+    packed as a worker packs them; the share of right choices."""
+    spec_steps = agents * CUE_STEPS
+    cue = torch.randint(0, 2, (agents,), generator=rng)
+    obs = torch.zeros(agents, CUE_STEPS + 1, 3)
+    obs[:, 0, 0] = cue * 2.0 - 1.0
+    obs[torch.arange(agents), :, 1] = torch.linspace(0, 1, CUE_STEPS + 1)
+    obs[:, CUE_STEPS - 1, 2] = 1.0  # "choose now"
+    memory = torch.zeros(agents, network.memory_size)
+    acted, memories, log_probs = [], [], []
+    for step in range(CUE_STEPS):
+        memories.append(memory)
+        _, discrete, log_prob, after = network.act_recurrent(
+            {"vector": obs[:, step]}, None, memory
+        )
+        memory = memory if after is None else after
+        acted.append(discrete)
+        log_probs.append(log_prob)
+    choice = acted[-1][:, 0]
+    reward = torch.zeros(agents, CUE_STEPS)
+    reward[:, -1] = (choice == cue).float()
+    batch = segment(vector_spec(3, 0, (2,)), agents, CUE_STEPS)
+    batch[keys.OBS, "vector"] = obs[:, :CUE_STEPS].reshape(spec_steps, 3)
+    batch[keys.NEXT, keys.OBS, "vector"] = obs[:, 1:].reshape(spec_steps, 3)
+    batch[keys.ACTION, keys.DISCRETE] = torch.stack(acted, 1).reshape(spec_steps, 1)
+    batch[keys.LOG_PROB] = torch.stack(log_probs, 1).reshape(spec_steps, 1)
+    if network.memory_size:
+        batch[keys.MEMORY] = torch.stack(memories, 1).reshape(spec_steps, -1)
+    batch[keys.NEXT, keys.REWARD] = reward.reshape(spec_steps, 1)
+    batch[keys.NEXT, keys.TERMINATED] = batch[keys.NEXT, keys.DONE].clone()
+    batch[keys.NEXT, keys.TRUNCATED] = torch.zeros(spec_steps, 1, dtype=torch.bool)
+    batch[keys.AGENT_ID] = torch.arange(agents).repeat_interleave(CUE_STEPS) + version * agents
+    batch[keys.WORKER] = torch.zeros(spec_steps, dtype=torch.int64)
+    batch[keys.POLICY_VERSION] = torch.full((spec_steps,), version)
+    return batch, float((choice == cue).float().mean())
+
+
+def learn_recall(network: ActorCritic, learner: PPO, batches: int) -> list[float]:
+    rng = torch.Generator().manual_seed(1)
+    scores: list[float] = []
+    for version in range(batches):
+        batch, score = recall_episodes(network, 128, version, rng)
+        scores.append(score)
+        learner.add(batch, torch.zeros(len(batch), dtype=torch.int64))
+        if learner.ready():
+            learner.update(progress=0.0)
+        if np.mean(scores[-3:]) > 0.95:
+            break
+    return scores
+
+
+def test_ppo_with_memory_learns_to_recall_a_cue():
+    """Only the first step shows the cue; the last asks for it. Without memory the best
+    policy is right half the time; with it PPO gets near every choice right."""
+    spec = vector_spec(3, 0, (2,))
+    network = memory_network(spec, size=32, length=CUE_STEPS)
+    scores = learn_recall(network, ppo(network, 511, learning_rate=3e-3, beta=1e-3), 60)
+    assert np.mean(scores[-3:]) > 0.95, scores
+    torch.manual_seed(0)
+    plain = ActorCritic(spec, NetworkSettings(hidden_units=16))
+    h = Hyperparameters(buffer_size=511, batch_size=64, learning_rate=3e-3, beta=1e-3)
+    control = PPO(plain, TrainerSettings(hyperparameters=h, network_settings=plain.settings))
+    scores = learn_recall(plain, control, 20)
+    assert np.mean(scores[-5:]) < 0.65, scores
