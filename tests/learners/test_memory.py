@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from mlagents_envs.base_env import ActionSpec, BehaviorSpec
+from mlagents_envs.base_env import BehaviorSpec
 
 from batches import keys
 from learners.acting import NumpyActor
@@ -128,7 +128,8 @@ def pieces(
 
 def ppo(network: ActorCritic, buffer_size: int = 8, **hyper) -> RecurrentPPO:
     h = Hyperparameters(buffer_size=buffer_size, batch_size=8, **hyper)
-    return RecurrentPPO(network, TrainerSettings(hyperparameters=h, network_settings=network.settings))
+    settings = TrainerSettings(hyperparameters=h, network_settings=network.settings)
+    return RecurrentPPO(network, settings)
 
 
 def test_the_critic_runs_along_an_agents_pieces_across_updates():
@@ -181,9 +182,7 @@ def recall_episodes(network: ActorCritic, agents: int, version: int, rng: torch.
     acted, memories, log_probs = [], [], []
     for step in range(CUE_STEPS):
         memories.append(memory)
-        _, discrete, log_prob, after = network.act_recurrent(
-            {"vector": obs[:, step]}, None, memory
-        )
+        _, discrete, log_prob, after = network.act_recurrent({"vector": obs[:, step]}, None, memory)
         memory = memory if after is None else after
         acted.append(discrete)
         log_probs.append(log_prob)
