@@ -110,17 +110,23 @@ class Expert(ABC):
 
 
 class HallwayExpert(Expert):
-    """Hallway: find the symbol (look around until a ray sees a block), remember its
-    colour, then go to the goal of that colour."""
+    """Hallway: find the symbol (look around until a ray sees a block) and remember its
+    colour; face the symbol, turn about, and walk down the hallway (steering toward the
+    freest of the rays ahead) until the goal of that colour is in sight; then go to it."""
 
     ORANGE_GOAL, RED_GOAL, ORANGE_BLOCK, RED_BLOCK, WALL = range(5)
+    ABOUT_TURN = 10  # decisions of turning: half a circle
 
     def __init__(self, seed: int = 0) -> None:
         super().__init__(seed)
         self.goal: dict[int, int] = {}  # agent -> the tag of the goal to reach
+        self.turning: dict[int, int] = {}  # agent -> decisions of its about-turn left
+        self.away: dict[int, int] = {}  # agent -> the turn away from the other goal
+        self.spun: dict[int, int] = {}  # agent -> decisions looking for the wanted goal
+        self.since: dict[int, int] = {}  # agent -> decisions since it saw the wanted goal
 
     def memories(self) -> list[dict[int, int]]:
-        return [*super().memories(), self.goal]
+        return [*super().memories(), self.goal, self.turning, self.away, self.spun, self.since]
 
     def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
         frame = observations[0][:, -35:]  # the newest of the 3 stacked frames
@@ -128,16 +134,41 @@ class HallwayExpert(Expert):
         actions = np.zeros((len(agent_ids), 1), np.int32)
         for row, agent in enumerate(int(a) for a in agent_ids):
             tag = tags[row]
+            blocks = (tag == self.ORANGE_BLOCK) | (tag == self.RED_BLOCK)
+            wall_close = fractions[row, 0] * 14.0 < 1.0
             if agent not in self.goal:
-                if (tag == self.ORANGE_BLOCK).any():
-                    self.goal[agent] = self.ORANGE_GOAL
-                elif (tag == self.RED_BLOCK).any():
-                    self.goal[agent] = self.RED_GOAL
-                if agent in self.goal:
-                    self.unseen[agent] = self.RECENT  # now look for the goal
-            wanted = self.goal.get(agent)
-            seen = None if wanted is None else tag == wanted
-            actions[row, 0] = self.home(agent, seen, fractions[row, 0] * 14.0 < 1.0)
+                if blocks.any():
+                    orange = (tag == self.ORANGE_BLOCK).any()
+                    self.goal[agent] = self.ORANGE_GOAL if orange else self.RED_GOAL
+                else:
+                    actions[row, 0] = self.home(agent, None, wall_close)
+                    continue
+            wanted = tag == self.goal[agent]
+            since = self.since[agent] = 0 if wanted.any() else self.since.get(agent, 99) + 1
+            if since <= self.RECENT:  # the goal in sight, or just lost: walk on toward it
+                actions[row, 0] = self.home(agent, wanted, wall_close)
+            elif agent not in self.turning:  # face the symbol first
+                if blocks[0]:
+                    self.turning[agent] = self.ABOUT_TURN
+                actions[row, 0] = self.home(agent, blocks, wall_close)
+            elif self.turning[agent] > 0:
+                self.turning[agent] -= 1
+                actions[row, 0] = LEFT
+            elif (other := (tag >= 0) & (tag <= self.RED_GOAL) & ~wanted).any():
+                # the other goal: the wanted one is across the hallway's end; look around
+                # (away from it first), walking on a little after each full circle
+                if agent not in self.away:
+                    self.away[agent] = LEFT if toward(other) == RIGHT else RIGHT
+                spun = self.spun[agent] = self.spun.get(agent, 0) + 1
+                actions[row, 0] = self.away[agent] if spun % 26 < 20 else FORWARD
+            elif blocks[:3].any() or wall_close:  # back toward the symbol, or stuck: about
+                self.turning[agent] = self.ABOUT_TURN - 1
+                actions[row, 0] = LEFT
+            else:  # down the hallway: toward the freest of the rays ahead
+                free = fractions[row, :3]
+                best = int(free.argmax())
+                ahead = free[best] - free[0] < 0.05
+                actions[row, 0] = FORWARD if ahead else (RIGHT, LEFT)[best - 1]
         return actions
 
 

@@ -73,7 +73,7 @@ def test_hallway_rewards_the_goal_matching_the_symbol(right, reward):
     env = make("Hallway")
     output = env.reset()
     up_is_right = env.orange_up[0] != env.red[0]  # the +y goal has the symbol's colour
-    env.pos[0] = (5.0, 2.0 if up_is_right == right else -2.0)
+    env.pos[0] = (13.0, 2.0 if up_is_right == right else -2.0)
     (got, _, interrupted) = rows_of(step_until_done(env, output), [0], done=True)[0]
     assert got == pytest.approx(reward, abs=0.01) and not interrupted
 

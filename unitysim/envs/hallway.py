@@ -1,16 +1,17 @@
 """Hallway: go to the goal whose colour matches the symbol (ML-Agents example, spec-faithful).
 
-Sixteen rooms, one agent each (ids 0..15, no groups). At the far end of a 12 x 6 room
-(+x) a symbol block, orange or red, stands between two goals, one orange and one red, on
-random sides. The agent starts at the near end facing roughly +x. Touching the goal of
+Sixteen hallways, one agent each (ids 0..15, no groups). As in the real scene, the agent
+starts facing any way a little way into a 28 x 8 hallway; the symbol, an orange or red
+block, stands near the hallway's start (+-2 across), and the two goals, one orange and one
+red on random sides, at its far end. Rays reach 14, so the symbol is out of sight over
+the last 11 of the 20 or so units to the goals: the agent must look for the symbol, then
+remember its colour on the way (ML-Agents trains it with memory). Touching the goal of
 the symbol's colour sets the reward to +1, the other goal to -0.1; both end the episode.
-Every step costs -1 / MaxStep (3000, interrupted). In the real scene the symbol is in a
-side room and the agent needs memory; here it stays in view from the goals, so frame
-stacking suffices.
+Every step costs -1 / MaxStep (3000, interrupted).
 
-Sensors as in the dump: 5 rays over ±60° (tags orange goal, red goal, orange block, red
-block, wall), 3 frames stacked: 105; and StepCount / MaxStep, 3 frames stacked: 3.
-Actions: one branch of 5 (none, forward, back, turn right, turn left); nothing masked.
+Sensors as in the dump: 5 rays over +-60 degrees (tags orange goal, red goal, orange
+block, red block, wall), 3 frames stacked: 105; and StepCount / MaxStep, 3 frames stacked:
+3. Actions: one branch of 5 (none, forward, back, turn right, turn left); nothing masked.
 """
 
 from __future__ import annotations
@@ -21,16 +22,18 @@ from unitysim.envs.arena import MOVES, ArenaEnv, drive, limits, overlaps, steer
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
 from unitysim.envs.perception import FrameStack, Rays, perceive
 
-HALF = (6.0, 3.0)
+HALF = (14.0, 4.0)
 RADIUS = 0.5
 LIMITS = limits(HALF, RADIUS)
 MAX_STEP = 3000
 ORANGE_GOAL, RED_GOAL, ORANGE_BLOCK, RED_BLOCK, WALL = range(5)
 RAYS = Rays(2, 60.0, 14.0, 5)
-# ray objects of a room: the symbol, the goal at +y, the goal at -y
-CENTERS = np.array([[5.5, 0.0], [5.5, 2.0], [5.5, -2.0]])
+# ray objects of a hallway: the symbol (its place across drawn per episode), the goal at
+# +y, the goal at -y
+CENTERS = np.array([[-12.5, 0.0], [13.5, 2.0], [13.5, -2.0]])
 SIZES = np.array([[0.5, 0.5], [0.5, 0.8], [0.5, 0.8]])
 GOALS_LO, GOALS_HI = CENTERS[1:] - SIZES[1:], CENTERS[1:] + SIZES[1:]
+SYMBOL_ACROSS = 2.0  # the symbol stands within +-2 of the hallway's middle
 
 
 class Hallway(ArenaEnv):
@@ -51,15 +54,17 @@ class Hallway(ArenaEnv):
         super().__init__(rng, num_areas, params)
         self.red = np.zeros(self.n, dtype=bool)  # the symbol's colour
         self.orange_up = np.zeros(self.n, dtype=bool)  # the orange goal is the one at +y
+        self.centers = np.broadcast_to(CENTERS, (self.n, 3, 2)).copy()  # symbol's y drawn
         self.rays = FrameStack(self.n, 3, RAYS.size)
         self.clock = FrameStack(self.n, 3, 1)
 
     def _begin(self, which: np.ndarray) -> None:
         k = int(which.sum())
         self.pos[which] = np.column_stack(
-            [self.rng.uniform(-5.4, -4.0, k), self.rng.uniform(-2.4, 2.4, k)]
+            [self.rng.uniform(-9.0, -6.0, k), self.rng.uniform(-2.4, 2.4, k)]
         )
-        self.heading[which] = self.rng.uniform(-0.6, 0.6, k)
+        self.heading[which] = self.rng.uniform(-np.pi, np.pi, k)
+        self.centers[which, 0, 1] = self.rng.uniform(-SYMBOL_ACROSS, SYMBOL_ACROSS, k)
         self.motion[which] = 0.0
         self.turn[which] = 0.0
         self.red[which] = self.rng.random(k) < 0.5
@@ -90,8 +95,7 @@ class Hallway(ArenaEnv):
         table[:, 1] = np.where(up, ORANGE_GOAL, RED_GOAL)
         table[:, 2] = np.where(up, RED_GOAL, ORANGE_GOAL)
         table[:, 3] = WALL
-        lo = np.broadcast_to(CENTERS - SIZES, (len(rows), 3, 2))
-        hi = np.broadcast_to(CENTERS + SIZES, (len(rows), 3, 2))
+        lo, hi = self.centers[rows] - SIZES, self.centers[rows] + SIZES
         (frame,) = perceive((RAYS,), self.pos[rows], self.heading[rows], lo, hi, HALF, table)
         time = (self.episode_steps[rows] / MAX_STEP).astype(np.float32)[:, None]
         return [self.rays.push(rows, frame), self.clock.push(rows, time)]
