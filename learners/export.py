@@ -3,7 +3,7 @@
 Owns the exported graph: inputs ``obs_0..obs_{n-1}`` (one per sensor, in spec order, batch
 axis dynamic, images NCHW as current ML-Agents writes them) and ``action_masks`` (discrete only,
 float, 1 = allowed), and the outputs Unity's ``SentisModelParamLoader`` reads: the float
-constants ``version_number`` (3) and ``memory_size`` (0), the action-size constants, the
+constants ``version_number`` (3) and ``memory_size``, the action-size constants, the
 stochastic actions sampled inside the graph (as ML-Agents does) and their deterministic
 twins. Continuous actions leave the graph as the collector sends them to Unity
 (``clamp(a, -3, 3) / 3``, as ML-Agents exports them), so the file acts as the policy did
@@ -11,7 +11,9 @@ in training; squashed (SAC) policies emit ``tanh`` of the sample and ``tanh(mean
 action, with the state-dependent log-std of ``conditional_sigma`` networks.
 Also owns ``export_checkpoint`` (one ``.onnx`` per behavior) behind ``unity-rollout export``.
 Not owned: the networks (``learners.policies``), the checkpoint format
-(``learners.checkpoint``), recurrent memories (no network here has one). See docs/export.md.
+(``learners.checkpoint``). A policy with memory takes ``recurrent_in`` ``[batch, 1,
+memory_size]`` last and gives ``recurrent_out`` last, as ML-Agents' exporter names them.
+See docs/export.md.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ class _ExportedPolicy(nn.Module):
         continuous, branches = network.continuous, network.branches
         # Unity reads these constants as float tensors (SentisModelInfo casts Tensor<float>).
         self.register_buffer("version_number", torch.tensor([float(MODEL_EXPORT_VERSION)]))
-        self.register_buffer("memory_size", torch.tensor([0.0]))
+        self.register_buffer("memory_size", torch.tensor([float(network.memory_size)]))
         self.register_buffer("continuous_shape", torch.tensor([float(continuous)]))
         self.register_buffer("discrete_shape", torch.tensor([[float(b) for b in branches]]))
 
@@ -51,6 +53,10 @@ class _ExportedPolicy(nn.Module):
         net = self.network
         count = len(net.sensor_names)
         hidden = net.features(dict(zip(net.sensor_names, inputs[:count], strict=True)))
+        memory_out = None
+        if net.lstm is not None:  # recurrent_in [batch, 1, memory_size], last
+            memory = inputs[-1].reshape(inputs[-1].shape[0], -1)
+            hidden, memory_out = net.recur(net.lstm, hidden, memory)
         outputs = [self.version_number.clone(), self.memory_size.clone()]
         if net.mean is not None:
             mean, log_std = net.mean_log_std(hidden)
@@ -76,6 +82,8 @@ class _ExportedPolicy(nn.Module):
                 self.discrete_shape.clone(),
                 torch.cat(deterministic, dim=1),
             ]
+        if memory_out is not None:
+            outputs.append(memory_out.unsqueeze(1))
         return tuple(outputs)
 
 
@@ -96,6 +104,9 @@ def onnx_names(network: ActorCritic) -> tuple[list[str], list[str]]:
             "discrete_action_output_shape",
             "deterministic_discrete_actions",
         ]
+    if network.memory_size:
+        inputs.append("recurrent_in")
+        outputs.append("recurrent_out")
     return inputs, outputs
 
 
@@ -110,10 +121,13 @@ def export_onnx(network: ActorCritic, path: str | Path) -> Path:
     ]
     if network.branches:
         dummy.append(torch.ones(1, sum(network.branches)))
-    dynamic_axes = {  # the batch axis of every input and of every action output
+    if network.memory_size:
+        dummy.append(torch.zeros(1, 1, network.memory_size))
+    batched = ("action_masks", "recurrent_in", "recurrent_out")
+    dynamic_axes = {  # the batch axis of every input, every action output and the memory
         name: {0: "batch"}
         for name in input_names + output_names
-        if name.startswith("obs_") or name == "action_masks" or name.endswith("_actions")
+        if name.startswith("obs_") or name in batched or name.endswith("_actions")
     }
     with torch.no_grad(), warnings.catch_warnings():
         # The TorchScript exporter is deprecated upstream but is the one that writes the

@@ -232,3 +232,41 @@ def test_ppo_with_memory_learns_to_recall_a_cue():
     control = PPO(plain, TrainerSettings(hyperparameters=h, network_settings=plain.settings))
     scores = learn_recall(plain, control, 20)
     assert np.mean(scores[-5:]) < 0.65, scores
+
+
+def test_the_onnx_export_carries_the_memory_in_and_out(tmp_path):
+    """ML-Agents' layout: ``recurrent_in`` [batch, 1, memory_size] last in, ``recurrent_out``
+    last out, ``memory_size`` its size; three steps in onnxruntime act as the network."""
+    import onnx
+    import onnxruntime as ort
+
+    from learners.export import export_onnx
+
+    spec = vector_spec(6, 2, (3,))
+    network = memory_network(spec)
+    for p in network.parameters():
+        p.data.add_(0.1 * torch.randn_like(p))
+    path = export_onnx(network, tmp_path / "Hallway.onnx")
+    model = onnx.load(str(path))
+    assert [i.name for i in model.graph.input] == ["obs_0", "action_masks", "recurrent_in"]
+    assert [o.name for o in model.graph.output][-1] == "recurrent_out"
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    names = [o.name for o in sess.get_outputs()]
+    rng = np.random.default_rng(0)
+    memory, mine = np.zeros((5, 1, 16), np.float32), None
+    for _ in range(3):
+        obs = rng.normal(size=(5, 6)).astype(np.float32)
+        feed = {"obs_0": obs, "action_masks": np.ones((5, 3), np.float32), "recurrent_in": memory}
+        out = dict(zip(names, sess.run(None, feed), strict=True))
+        assert out["memory_size"].tolist() == [16.0]
+        continuous, discrete, _, mine = network.act_recurrent(
+            {"vector": torch.from_numpy(obs)}, None, mine, True
+        )
+        np.testing.assert_allclose(
+            out["deterministic_continuous_actions"],
+            network.unity_action(continuous).numpy(),
+            atol=1e-5,
+        )
+        np.testing.assert_array_equal(out["deterministic_discrete_actions"], discrete.numpy())
+        np.testing.assert_allclose(out["recurrent_out"][:, 0], mine.numpy(), atol=1e-5)
+        memory = out["recurrent_out"]
