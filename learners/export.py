@@ -133,6 +133,9 @@ def export_onnx(network: ActorCritic, path: str | Path) -> Path:
         # The TorchScript exporter is deprecated upstream but is the one that writes the
         # opset-9 graph ML-Agents does (and needs no onnxscript).
         warnings.simplefilter("ignore", DeprecationWarning)
+        # an LSTM's: its state comes in as recurrent_in, and any batch size runs (tested)
+        warnings.simplefilter("ignore", torch.jit.TracerWarning)
+        warnings.filterwarnings("ignore", "Exporting a model to ONNX with a batch_size")
         torch.onnx.export(
             wrapper,
             tuple(dummy),

@@ -234,7 +234,7 @@ class ActorCritic(nn.Module):
         if memory is None:
             memory = x.new_zeros(x.shape[0], 2 * units)
         out, (h, c) = lstm(x, lstm_state(memory, units))
-        return (out.squeeze(1) if step else out), torch.cat([h[0], c[0]], dim=-1)
+        return (out[:, 0] if step else out), torch.cat([h[0], c[0]], dim=-1)
 
     def sequence_features(
         self, obs: dict[str, torch.Tensor], memory: torch.Tensor, critic_memory: torch.Tensor

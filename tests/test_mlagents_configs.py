@@ -1,6 +1,6 @@
 """Acceptance for a user arriving from mlagents-learn: every one of ML-Agents' own example
-configs that needs neither memory nor demonstrations (``tests/mlagents_configs/``,
-unchanged; curiosity and RND included) runs on its unitysim environment in local mode
+configs that needs no demonstrations (``tests/mlagents_configs/``, unchanged; memory,
+curiosity and RND included) runs on its unitysim environment in local mode
 with no unsupported-feature report, no other warning and no error, for a short budget of
 steps (how they learn is for the benchmarks)."""
 
@@ -35,7 +35,8 @@ def test_the_copies_are_the_ones_the_issue_names():
         "poca/SoccerTwos",
         "poca/StrikersVsGoalie",
         *(f"ppo/{n}" for n in ("3DBall", "3DBallHard", "3DBall_randomize", "Basic")),
-        *(f"ppo/{n}" for n in ("FoodCollector", "GridWorld", "Pyramids", "PyramidsRND")),
+        *(f"ppo/{n}" for n in ("FoodCollector", "GridWorld", "Hallway", "Pyramids")),
+        "ppo/PyramidsRND",
         *(f"ppo/{n}" for n in ("Walker", "WallJump")),
         "ppo/WallJump_curriculum",
         *(f"sac/{n}" for n in ("3DBall", "3DBallHard", "Basic", "FoodCollector")),

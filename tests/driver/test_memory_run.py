@@ -1,0 +1,62 @@
+"""ML-Agents' ``ppo/Hallway.yaml`` (memory) through the whole system in local 2-core mode:
+two workers carry their agents' memories, the learner trains on sequences, the checkpoint
+exports with ML-Agents' memory inputs and outputs, and a resume with another memory size
+is one line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import onnx
+import pytest
+import yaml
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from driver.options import TrainOptions
+from driver.run_dir import TrainingError
+from driver.train import train
+from learners.export import export_checkpoint
+
+pytestmark = pytest.mark.integration
+
+CONFIG = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo" / "Hallway.yaml"
+
+
+def options(tmp_path: Path, config: Path, **changes: object) -> TrainOptions:
+    settings: dict = {
+        "env": "unitysim:Hallway",
+        "config": str(config),
+        "results_dir": str(tmp_path),
+        "run_id": "memory",
+        "max_steps": 3_100,
+        "workers": 2,
+        "progress": False,
+    }
+    return TrainOptions(**(settings | changes))
+
+
+def test_mlagents_hallway_config_trains_with_memory(ray_session, tmp_path):
+    """Summaries every 1,000 steps; 3,100 steps are at least two updates of buffer_size
+    1,024 (two workers bring 1,024 steps each at a time)."""
+    data = yaml.safe_load(CONFIG.read_text())
+    data["behaviors"]["Hallway"]["summary_freq"] = 1000
+    config = tmp_path / "Hallway.yaml"
+    config.write_text(yaml.safe_dump(data))
+    result = train(options(tmp_path, config))
+    assert not result.interrupted and result.steps["Hallway?team=0"] >= 3_100
+    scalars = EventAccumulator(str(result.run_dir / "Hallway")).Reload().Scalars
+    assert scalars("Losses/Policy Loss")  # updates on sequences ran
+    assert all(e.value == e.value for e in scalars("Losses/Value Loss"))  # no NaN
+    (exported,) = export_checkpoint(result.run_dir)
+    model = onnx.load(str(exported))
+    assert [i.name for i in model.graph.input][-1] == "recurrent_in"
+    assert [o.name for o in model.graph.output][-1] == "recurrent_out"
+
+    data["behaviors"]["Hallway"]["network_settings"]["memory"]["memory_size"] = 64
+    config.write_text(yaml.safe_dump(data))
+    with pytest.raises(TrainingError) as error:
+        train(options(tmp_path, config, resume=True, max_steps=6_000))
+    message = str(error.value)
+    assert "\n" not in message
+    assert "Hallway was trained with network_settings.memory.memory_size 128" in message
+    assert "the config now gives 64" in message
