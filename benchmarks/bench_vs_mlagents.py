@@ -80,6 +80,10 @@ CASES = (
     # a sparse reward, ML-Agents' intrinsic signals: curiosity, RND (to mlagents-learn's end)
     Case("Pyramids-PPO-curiosity", "Pyramids", "ppo_Pyramids.yaml", None, (), 900),
     Case("PyramidsRND-PPO", "Pyramids", "ppo_PyramidsRND.yaml", None, (), 900),
+    # memory (an LSTM) on a Hallway whose symbol is out of sight from the goals; and the
+    # same config without memory, to show what it does
+    Case("Hallway-PPO-memory", "Hallway", "ppo_Hallway.yaml", None, (), 1800),
+    Case("Hallway-PPO-no-memory", "Hallway", "ppo_Hallway_nomemory.yaml", None, (), 1800),
     # self-play, ML-Agents' configs: ELO, to the level mlagents-learn ends its run at
     Case("SoccerTwos-POCA", "SoccerTwos", "poca_SoccerTwos.yaml", None, (), 900, "elo"),
     Case(
