@@ -27,7 +27,7 @@ from mlagents_envs.base_env import BehaviorSpec
 from torch import nn
 
 from learners.encoders import kaiming_linear
-from learners.policies import SensorEncoder
+from learners.sensors import SensorEncoder
 from learners.settings import NetworkSettings
 
 HEADS = 4

@@ -1,8 +1,9 @@
 """Actor-critic networks built from an ML-Agents ``BehaviorSpec``.
 
-One encoder per sensor (vectors as they are, optionally normalized; images and grids
-through ML-Agents' ``vis_encode_type`` encoder, ``learners.encoders``), concatenated into
-MLP trunks (policy and value apart) with ML-Agents' layers: Swish activations and its
+One encoder per sensor (``learners.sensors``), concatenated into MLP trunks (policy and
+value apart), each followed by an LSTM when ``network_settings.memory`` asks for one
+(``memory_size // 2`` units; the memory is its hidden and cell state side by side, as
+ML-Agents lays it out), with ML-Agents' layers: Swish activations and its
 initializations, drawn in numpy by ``learners.acting.initial_weights`` (trunk weights
 ``kaiming_normal`` for a linear layer, the Gaussian mean head at gain 0.2, discrete heads
 at 0.1, the value head Xavier-uniform, log-std 0). Heads for continuous actions (a
@@ -36,95 +37,22 @@ from learners.acting import (
     ACTION_CLIP,
     LOG_STD_MAX,
     LOG_STD_MIN,
-    NORM_CLIP,
-    encoder_width,
     goal_sensors,
     initial_weights,
     to_unity,
     trunk_input_width,
 )
-from learners.encoders import visual_encoder
+from learners.sensors import SensorEncoder
 from learners.settings import NetworkSettings
 
 _HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 _LOG_2 = math.log(2.0)
-NORM_CHUNK = 2**24  # numbers per float64 chunk of a normalization update (128 MB)
 SQUASH_EPS = 1e-6  # stored squashed actions are clamped to +-(1 - eps) before atanh
 
 
 def tanh_log_det(u: torch.Tensor) -> torch.Tensor:
     """log(1 - tanh(u)^2), stable for large |u| (the form torch's TanhTransform uses)."""
     return 2.0 * (_LOG_2 - u - torch.nn.functional.softplus(-2.0 * u))
-
-
-class RunningNorm(nn.Module):
-    """Running mean and variance of a vector observation, kept in buffers.
-
-    Buffers travel with the state_dict, so workers, checkpoints and the ONNX export all
-    see the statistics the learner last updated (ML-Agents normalizes the same way).
-    Only the learner calls ``update``; acting only reads.
-    """
-
-    def __init__(self, size: int, clip: float = NORM_CLIP) -> None:
-        super().__init__()
-        self.clip = clip
-        self.register_buffer("count", torch.tensor(1e-4, dtype=torch.float64))
-        self.register_buffer("mean", torch.zeros(size))
-        self.register_buffer("var", torch.ones(size))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return ((x - self.mean) * torch.rsqrt(self.var + 1e-8)).clamp(-self.clip, self.clip)
-
-    @torch.no_grad()
-    def update(self, x: torch.Tensor) -> None:
-        """Merge a batch ``[..., size]`` into the statistics (parallel Welford), in float64
-        chunks of at most ``NORM_CHUNK`` numbers, so a large batch is never copied whole."""
-        x = x.reshape(-1, self.mean.shape[0])
-        rows = max(1, NORM_CHUNK // self.mean.shape[0])
-        for start in range(0, len(x), rows):
-            self._merge(x[start : start + rows].to(torch.float64))
-
-    def _merge(self, x: torch.Tensor) -> None:
-        n, mean, var = float(len(x)), x.mean(0), x.var(0, unbiased=False)
-        count = float(self.count)
-        total = count + n
-        delta = mean - self.mean.double()
-        new_mean = self.mean.double() + delta * n / total
-        m2 = self.var.double() * count + var * n + delta.square() * count * n / total
-        self.mean.copy_(new_mean.float())
-        self.var.copy_((m2 / total).float())
-        self.count.fill_(total)
-
-
-class SensorEncoder(nn.Module):
-    """Vectors pass through flattened (normalized when ``normalize``); images ``[C, H, W]``
-    (float in [0, 1] or uint8) go through ``settings.vis_encode_type``'s encoder to
-    ``hidden_units`` features. ``sensor`` names the image in a too-small error."""
-
-    def __init__(
-        self,
-        shape: tuple[int, ...],
-        settings: NetworkSettings,
-        normalize: bool = False,
-        sensor: str = "image",
-    ) -> None:
-        super().__init__()
-        self.norm: RunningNorm | None = None
-        self.image = len(shape) == 3
-        if self.image:
-            self.net: nn.Module = visual_encoder(
-                tuple(shape), settings.vis_encode_type, settings.hidden_units, sensor
-            )
-        else:
-            self.net = nn.Flatten(start_dim=-len(shape)) if len(shape) > 1 else nn.Identity()
-            if normalize:
-                self.norm = RunningNorm(math.prod(shape))
-        self.size = encoder_width(tuple(shape), settings)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.norm is not None:
-            return self.norm(self.net(x))
-        return self.net(x)
 
 
 def _mlp(width: int, settings: NetworkSettings) -> nn.Sequential:

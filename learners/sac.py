@@ -49,9 +49,10 @@ from torchrl.modules import TanhNormal
 from batches import keys
 from learners.devices import Compute
 from learners.modules import PolicyParams
-from learners.policies import ActorCritic, SensorEncoder
+from learners.policies import ActorCritic
 from learners.rewards import extrinsic_reward
 from learners.schedules import decay
+from learners.sensors import SensorEncoder
 
 if TYPE_CHECKING:
     from learners.settings import TrainerSettings

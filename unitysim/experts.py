@@ -24,6 +24,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from unitysim.envs.hallway import RAY_LENGTH
+
 NOOP, FORWARD, BACK, RIGHT, LEFT = range(5)
 
 
@@ -135,7 +137,7 @@ class HallwayExpert(Expert):
         for row, agent in enumerate(int(a) for a in agent_ids):
             tag = tags[row]
             blocks = (tag == self.ORANGE_BLOCK) | (tag == self.RED_BLOCK)
-            wall_close = fractions[row, 0] * 14.0 < 1.0
+            wall_close = fractions[row, 0] * RAY_LENGTH < 1.0
             if agent not in self.goal:
                 if blocks.any():
                     orange = (tag == self.ORANGE_BLOCK).any()

@@ -10,7 +10,8 @@ from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
 from learners.acting import NumpyActor, acts_in_numpy, encoder_width
 from learners.factory import PolicyFactory
-from learners.policies import ActorCritic, RunningNorm, SensorEncoder, TorchActor, numpy_state
+from learners.policies import ActorCritic, TorchActor, numpy_state
+from learners.sensors import RunningNorm, SensorEncoder
 from learners.settings import NetworkSettings
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 

@@ -1,13 +1,14 @@
 """Hallway: go to the goal whose colour matches the symbol (ML-Agents example, spec-faithful).
 
 Sixteen hallways, one agent each (ids 0..15, no groups). As in the real scene, the agent
-starts facing any way a little way into a 28 x 8 hallway; the symbol, an orange or red
+starts facing any way a little way into a 16 x 8 hallway; the symbol, an orange or red
 block, stands near the hallway's start (+-2 across), and the two goals, one orange and one
-red on random sides, at its far end. Rays reach 14, so the symbol is out of sight over
-the last 11 of the 20 or so units to the goals: the agent must look for the symbol, then
-remember its colour on the way (ML-Agents trains it with memory). Touching the goal of
-the symbol's colour sets the reward to +1, the other goal to -0.1; both end the episode.
-Every step costs -1 / MaxStep (3000, interrupted).
+red on random sides, at its far end. Rays reach 8, so the symbol is out of sight over
+the last 5 of the 9 to 12 units to the goals: the agent must look for the symbol, then
+remember its colour on the way (ML-Agents trains it with memory). It runs at 6 units/s
+(0.6 a decision), so random play reaches a goal in about 4% of episodes. Touching the
+goal of the symbol's colour sets the reward to +1, the other goal to -0.1; both end the
+episode. Every step costs -1 / MaxStep (3000, interrupted).
 
 Sensors as in the dump: 5 rays over +-60 degrees (tags orange goal, red goal, orange
 block, red block, wall), 3 frames stacked: 105; and StepCount / MaxStep, 3 frames stacked:
@@ -22,15 +23,16 @@ from unitysim.envs.arena import MOVES, ArenaEnv, drive, limits, overlaps, steer
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
 from unitysim.envs.perception import FrameStack, Rays, perceive
 
-HALF = (14.0, 4.0)
+HALF = (8.0, 4.0)
 RADIUS = 0.5
 LIMITS = limits(HALF, RADIUS)
 MAX_STEP = 3000
 ORANGE_GOAL, RED_GOAL, ORANGE_BLOCK, RED_BLOCK, WALL = range(5)
-RAYS = Rays(2, 60.0, 14.0, 5)
+RAY_LENGTH = 8.0
+RAYS = Rays(2, 60.0, RAY_LENGTH, 5)
 # ray objects of a hallway: the symbol (its place across drawn per episode), the goal at
 # +y, the goal at -y
-CENTERS = np.array([[-12.5, 0.0], [13.5, 2.0], [13.5, -2.0]])
+CENTERS = np.array([[-6.5, 0.0], [7.5, 2.0], [7.5, -2.0]])
 SIZES = np.array([[0.5, 0.5], [0.5, 0.8], [0.5, 0.8]])
 GOALS_LO, GOALS_HI = CENTERS[1:] - SIZES[1:], CENTERS[1:] + SIZES[1:]
 SYMBOL_ACROSS = 2.0  # the symbol stands within +-2 of the hallway's middle
@@ -61,7 +63,7 @@ class Hallway(ArenaEnv):
     def _begin(self, which: np.ndarray) -> None:
         k = int(which.sum())
         self.pos[which] = np.column_stack(
-            [self.rng.uniform(-9.0, -6.0, k), self.rng.uniform(-2.4, 2.4, k)]
+            [self.rng.uniform(-5.0, -2.0, k), self.rng.uniform(-2.4, 2.4, k)]
         )
         self.heading[which] = self.rng.uniform(-np.pi, np.pi, k)
         self.centers[which, 0, 1] = self.rng.uniform(-SYMBOL_ACROSS, SYMBOL_ACROSS, k)
@@ -74,7 +76,7 @@ class Hallway(ArenaEnv):
 
     def _act(self, rows: np.ndarray, actions: Actions) -> None:
         c = MOVES[np.clip(actions.discrete[:, 0], 0, 4)]
-        self.motion[rows], self.turn[rows] = steer(c[:, 0], c[:, 1], c[:, 2], 2.0, np.pi)
+        self.motion[rows], self.turn[rows] = steer(c[:, 0], c[:, 1], c[:, 2], 6.0, np.pi)
 
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
         drive(self.pos, self.heading, self.motion, self.turn, *LIMITS)
