@@ -1,7 +1,7 @@
 """ML-Agents' ``ppo/Hallway.yaml`` (memory) through the whole system in local 2-core mode:
 two workers carry their agents' memories, the learner trains on sequences, the checkpoint
-exports with ML-Agents' memory inputs and outputs, and a resume with another memory size
-is one line."""
+exports with ML-Agents' memory inputs and outputs, and a resume or an initialization with
+another memory size is one line."""
 
 from __future__ import annotations
 
@@ -56,7 +56,10 @@ def test_mlagents_hallway_config_trains_with_memory(ray_session, tmp_path):
     config.write_text(yaml.safe_dump(data))
     with pytest.raises(TrainingError) as error:
         train(options(tmp_path, config, resume=True, max_steps=6_000))
-    message = str(error.value)
-    assert "\n" not in message
-    assert "Hallway was trained with network_settings.memory.memory_size 128" in message
-    assert "the config now gives 64" in message
+    with pytest.raises(TrainingError) as started_from:
+        train(options(tmp_path, config, run_id="other", initialize_from="memory"))
+    for option, message in (("--resume", error), ("--initialize-from", started_from)):
+        line = str(message.value)
+        assert "\n" not in line
+        assert line.startswith(f"{option}: Hallway was trained with network_settings.memory")
+        assert "memory_size 128, the config now gives 64" in line
