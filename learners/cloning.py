@@ -27,7 +27,7 @@ from learners.policies import ActorCritic
 from learners.schedules import LR_END, decay
 from learners.settings import BehavioralCloningSettings, Hyperparameters
 
-CRITIC = ("critic_trunk.", "value.")  # parameters cloning leaves alone
+CRITIC = ("critic_trunk.", "critic_lstm.", "value.")  # parameters cloning leaves alone
 NUM_EPOCH = 3  # ML-Agents' BC module's own default, not hyperparameters.num_epoch
 REPORT = "Losses/Pretraining Loss"  # ML-Agents' TensorBoard tag
 
@@ -54,6 +54,9 @@ class BehavioralCloning:
         self.continuous = torch.as_tensor(experts.continuous, device=device)
         self.discrete = torch.as_tensor(experts.discrete, device=device)
         self.size = len(experts)
+        memory = network.settings.memory
+        # with memory: minibatches of whole sequences, run from zero memories (ML-Agents')
+        self.length = memory.sequence_length if memory is not None else 1
         policy = [p for n, p in network.named_parameters() if not n.startswith(CRITIC)]
         self.optimizer = torch.optim.Adam(policy, lr=self.initial_lr)
 
@@ -72,11 +75,13 @@ class BehavioralCloning:
         batches = self.size // self.batch_size
         if self.settings.samples_per_update:
             batches = min(batches, self.settings.samples_per_update // self.batch_size)
+        per_batch = max(1, self.batch_size // self.length)  # sequences (steps without memory)
+        starts = max(1, self.size // self.length)
         losses = []
         for _ in range(self.num_epoch):
-            order = torch.randperm(self.size, device=self.continuous.device)
-            for i in range(batches):
-                index = order[i * self.batch_size : (i + 1) * self.batch_size]
+            order = torch.randperm(starts, device=self.continuous.device) * self.length
+            for i in range(min(batches, starts // per_batch)):
+                index = order[i * per_batch : (i + 1) * per_batch]
                 loss = self.loss(index)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
@@ -88,8 +93,17 @@ class BehavioralCloning:
         return {REPORT: float(torch.stack(losses).mean()) if losses else 0.0}
 
     def loss(self, index: torch.Tensor) -> torch.Tensor:
+        """The loss on the demonstration steps at ``index`` (with memory: the sequences of
+        ``sequence_length`` steps starting there, each from zero memory)."""
         network = self.network
+        if network.lstm is not None:
+            places = index.unsqueeze(-1) + torch.arange(self.length, device=index.device)
+            places = places.clamp(max=self.size - 1)
+            index = places.flatten()
         hidden = network.features({name: obs[index] for name, obs in self.obs.items()})
+        if network.lstm is not None:
+            sequences = hidden.unflatten(0, places.shape)
+            hidden = network.recur(network.lstm, sequences, None)[0].flatten(0, 1)
         loss = torch.zeros((), device=hidden.device)
         if network.mean is not None:
             mean, log_std = network.mean_log_std(hidden)

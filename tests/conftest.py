@@ -23,6 +23,13 @@ if (worker := os.environ.get("PYTEST_XDIST_WORKER")) and not os.environ[SESSION_
     os.environ[SESSION_TAG] += f"-{worker}"
 
 
+# One math thread per process: the suite runs three pytest workers on two cores, and
+# torch's OpenMP threads then spin against each other (an in-process cloning test took
+# 83 s with two threads beside other work, 1.2 s with one). What the product sets itself
+# (the learner's --learner-threads) is unchanged.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
 RAY_MARKERS = ("raylet", "gcs_server", "ray/", "ray::", "default_worker", "dashboard")
 
 

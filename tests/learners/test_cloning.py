@@ -13,7 +13,12 @@ from learners.cloning import REPORT, BehavioralCloning
 from learners.config import ConfigError, parse_config
 from learners.learner import CentralLearner
 from learners.policies import ActorCritic
-from learners.settings import BehavioralCloningSettings, Hyperparameters, NetworkSettings
+from learners.settings import (
+    BehavioralCloningSettings,
+    Hyperparameters,
+    MemorySettings,
+    NetworkSettings,
+)
 from tests.demonstrations.samples import CONTINUOUS, DISCRETE, sensor, spec
 from tests.learners.fakes import segment
 
@@ -65,10 +70,12 @@ def test_steps_pair_each_record_with_its_own_action_and_drop_the_last(tmp_path) 
     assert "do not match" in steps.problem_with(CONTINUOUS)
 
 
-def cloning(tmp_path, behavior, **settings) -> tuple[ActorCritic, BehavioralCloning]:
+def cloning(
+    tmp_path, behavior, memory: MemorySettings | None = None, **settings
+) -> tuple[ActorCritic, BehavioralCloning]:
     write_demo(tmp_path / "e.demo", expert(behavior, 513))
     torch.manual_seed(0)
-    network = ActorCritic(behavior, NetworkSettings(hidden_units=32, num_layers=2))
+    network = ActorCritic(behavior, NetworkSettings(hidden_units=32, num_layers=2, memory=memory))
     given = BehavioralCloningSettings(str(tmp_path / "e.demo"), **settings)
     hyper = Hyperparameters(batch_size=64, learning_rate=3e-3)
     return network, BehavioralCloning(network, given, hyper, expert_steps(tmp_path / "e.demo"))
@@ -95,6 +102,22 @@ def test_discrete_choices_are_cloned(tmp_path) -> None:
         bc.update(steps=0)
     _, discrete, _ = network.act(dict(bc.obs), deterministic=True)
     assert float((discrete == bc.discrete).float().mean()) > 0.9
+
+
+def test_a_policy_with_memory_is_cloned_on_sequences_from_zero_memory(tmp_path) -> None:
+    network, bc = cloning(tmp_path, DISCRETE, MemorySettings(16, 8), num_epoch=2)
+    critic = {n: p.detach().clone() for n, p in network.named_parameters() if "critic" in n}
+    assert any("critic_lstm" in name for name in critic)
+    for _ in range(30):
+        bc.update(steps=0)
+    memory, right = None, []
+    for row in range(64):  # acting as a worker does, memory carried from step to step
+        obs = {name: values[row : row + 1] for name, values in bc.obs.items()}
+        _, discrete, _, memory = network.act_recurrent(obs, None, memory, deterministic=True)
+        right.append(bool((discrete[0] == bc.discrete[row]).all()))
+    assert np.mean(right) > 0.9
+    for name, before in critic.items():
+        assert torch.equal(dict(network.named_parameters())[name], before), name
 
 
 def test_the_rate_decays_over_steps_and_cloning_stops_there(tmp_path) -> None:
