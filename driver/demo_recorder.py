@@ -25,6 +25,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps, TerminalSteps
 
+from batches.memories import AgentMemories
 from demonstrations import DemoStep
 from learners.policies import ActorCritic, TorchActor
 from rollout.segments import allowed_mask
@@ -53,18 +54,27 @@ class PolicyActor:
         self.actor = TorchActor(network)
         self.names = list(network.sensor_names)
         self.spec = network.spec
+        # a policy with memory: each agent's, as a worker keeps them
+        self.memories = AgentMemories(network.memory_size) if network.memory_size else None
 
     def act(self, decisions: DecisionSteps) -> ActionTuple:
         import torch
 
         pairs = zip(self.names, decisions.obs, strict=True)
         obs = {name: np.asarray(o, np.float32) for name, o in pairs}
+        agents = np.asarray(decisions.agent_id, np.int64)
+        memory = None if self.memories is None else self.memories.get(agents)
         with torch.no_grad():
-            continuous, discrete, _ = self.actor.act(obs, _mask(decisions, self.spec))
+            continuous, discrete, _, after = self.actor.act_recurrent(
+                obs, _mask(decisions, self.spec), memory
+            )
+        if self.memories is not None and after is not None:
+            self.memories.put(agents, after)
         return ActionTuple(self.actor.to_unity(continuous), discrete.astype(np.int32))
 
     def ended(self, agent_ids: Sequence[int]) -> None:
-        pass
+        if self.memories is not None:
+            self.memories.forget(np.asarray(agent_ids, np.int64))
 
 
 class ExpertActor:

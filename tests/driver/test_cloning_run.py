@@ -1,7 +1,8 @@
 """``behavioral_cloning`` end to end, in local 2-core mode: Hallway's scripted expert
-recorded with ``record-demo``, then PPO trained beside cloning from that file (the
-pretraining loss in TensorBoard under ML-Agents' tag, falling); a missing file and a
-file of another behavior each one line naming it."""
+recorded with ``record-demo``, then PPO with memory (the shipped config) trained beside
+cloning from that file (the pretraining loss in TensorBoard under ML-Agents' tag,
+falling), and ML-Agents' ``imitation/Hallway.yaml`` (memory and GAIL) on it; a missing
+file and a file of another behavior each one line naming it."""
 
 from __future__ import annotations
 
@@ -44,6 +45,26 @@ def options(tmp_path: Path, config: Path, max_steps: int = 4_000) -> TrainOption
         max_steps=max_steps,
         progress=False,
     )
+
+
+def test_mlagents_imitation_hallway_config_trains_with_memory_and_gail(ray_session, tmp_path):
+    """Unchanged but for its demo_path (a record-demo recording) and summary_freq."""
+    demo = tmp_path / "ExpertHallway.demo"
+    code, _, err = record(
+        tmp_path, "--env", "unitysim:Hallway", "--heuristic", "--steps", "800", "--out", str(demo)
+    )
+    assert code == 0, err
+    configs = Path(__file__).resolve().parents[1] / "mlagents_configs"
+    config = yaml.safe_load((configs / "imitation" / "Hallway.yaml").read_text())
+    hallway = config["behaviors"]["Hallway"]
+    hallway["reward_signals"]["gail"]["demo_path"] = str(demo)
+    hallway["summary_freq"] = 1000
+    path = tmp_path / "Hallway.yaml"
+    path.write_text(yaml.safe_dump(config))
+    result = train(options(tmp_path, path, max_steps=2_100))
+    scalars = EventAccumulator(str(result.run_dir / "Hallway")).Reload().Tags()["scalars"]
+    for tag in ("Policy/Gail Reward", "Losses/GAIL Loss", "Losses/Policy Loss"):
+        assert tag in scalars, (tag, scalars)
 
 
 def test_ppo_clones_hallways_expert_beside_its_own_steps(ray_session, tmp_path):

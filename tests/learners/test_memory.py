@@ -270,3 +270,41 @@ def test_the_onnx_export_carries_the_memory_in_and_out(tmp_path):
         np.testing.assert_array_equal(out["deterministic_discrete_actions"], discrete.numpy())
         np.testing.assert_allclose(out["recurrent_out"][:, 0], mine.numpy(), atol=1e-5)
         memory = out["recurrent_out"]
+
+
+def test_record_demo_acts_with_each_agents_memory():
+    """``record-demo --checkpoint`` with a policy with memory acts as a worker does: from
+    the agent's memory of its last decision, from zeros again after its episode ended."""
+    from mlagents_envs.base_env import DecisionSteps
+
+    from driver.demo_recorder import PolicyActor
+
+    spec = vector_spec(6, 0, (3,))
+    network = memory_network(spec)
+    for p in network.parameters():
+        p.data.add_(0.3 * torch.randn_like(p))
+    actor = PolicyActor(network, stochastic=False)
+    obs = np.random.default_rng(0).normal(size=(2, 6)).astype(np.float32)
+
+    def step() -> None:
+        ids = np.array([3, 4], np.int32)
+        steps = DecisionSteps(
+            [obs],
+            np.zeros(2, np.float32),
+            ids,
+            None,
+            np.zeros(2, np.int32),
+            np.zeros(2, np.float32),
+        )
+        actor.act(steps)
+
+    step()
+    assert actor.memories is not None and len(actor.memories) == 2
+    first = actor.memories.get(np.array([3, 4]))
+    step()
+    second = actor.memories.get(np.array([3, 4]))
+    assert not np.allclose(first, second)  # the second decision read the first's memory
+    actor.ended([3])
+    np.testing.assert_array_equal(actor.memories.get(np.array([3])), 0.0)
+    step()
+    np.testing.assert_allclose(actor.memories.get(np.array([3])), first[:1], atol=1e-6)
