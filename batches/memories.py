@@ -8,15 +8,19 @@ ML-Agents' policy keeps ``memory_dict`` by agent id. Plain numpy: workers carry 
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import numpy as np
+
+KEPT = 65_536  # agents remembered at most: one that vanished without an episode end goes
 
 
 class AgentMemories:
     """Memories ``[memory_size]`` by agent id; an agent never seen (or forgotten) has zeros."""
 
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self._by_agent: dict[int, np.ndarray] = {}
+    def __init__(self, size: int, kept: int = KEPT) -> None:
+        self.size, self.kept = size, kept
+        self._by_agent: OrderedDict[int, np.ndarray] = OrderedDict()  # least recent first
 
     def __len__(self) -> int:
         return len(self._by_agent)
@@ -32,6 +36,9 @@ class AgentMemories:
     def put(self, agents: np.ndarray, memories: np.ndarray) -> None:
         for agent, memory in zip(agents.tolist(), memories, strict=True):
             self._by_agent[agent] = memory
+            self._by_agent.move_to_end(agent)
+        while len(self._by_agent) > self.kept:
+            self._by_agent.popitem(last=False)
 
     def forget(self, agents: np.ndarray) -> None:
         """Agents whose episode ended: their next decision starts from zeros."""

@@ -308,3 +308,16 @@ def test_record_demo_acts_with_each_agents_memory():
     np.testing.assert_array_equal(actor.memories.get(np.array([3])), 0.0)
     step()
     np.testing.assert_allclose(actor.memories.get(np.array([3])), first[:1], atol=1e-6)
+
+
+def test_agent_memories_are_bounded_and_forgotten():
+    from batches.memories import AgentMemories
+
+    memories = AgentMemories(2, kept=3)
+    memories.put(np.array([1, 2, 3]), np.ones((3, 2), np.float32))
+    memories.put(np.array([1]), np.full((1, 2), 2.0, np.float32))  # 1 is the most recent
+    memories.put(np.array([4]), np.ones((1, 2), np.float32))  # 2, the least recent, goes
+    assert len(memories) == 3
+    np.testing.assert_array_equal(memories.get(np.array([2, 1])), [[0, 0], [2, 2]])
+    memories.forget(np.array([1]))
+    np.testing.assert_array_equal(memories.get(np.array([1])), [[0, 0]])
