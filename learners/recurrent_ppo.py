@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
@@ -33,10 +33,6 @@ from learners.policies import lstm_state
 from learners.ppo import PPO, VALUE_CHUNK_BYTES, Steps, policy_terms
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
-
-    from batches.expert_steps import ExpertSteps
-    from learners.devices import Compute
     from learners.policies import ActorCritic
     from learners.settings import TrainerSettings
     from learners.trajectory_store import Rows
@@ -75,13 +71,10 @@ def sequences(done: torch.Tensor, length: int) -> Sequences:
 
 class RecurrentPPO(PPO):
     def __init__(
-        self,
-        network: ActorCritic,
-        settings: TrainerSettings,
-        compute: Compute | None = None,
-        experts: Mapping[str, ExpertSteps] | None = None,
+        self, network: ActorCritic, settings: TrainerSettings, *args: Any, **kwargs: Any
     ) -> None:
-        super().__init__(network, settings, compute, experts)
+        """As ``PPO``'s (``compute``, ``experts`` after the settings)."""
+        super().__init__(network, settings, *args, **kwargs)
         memory = settings.network_settings.memory
         assert memory is not None and network.critic_lstm is not None
         self.length = memory.sequence_length

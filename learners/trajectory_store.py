@@ -182,7 +182,8 @@ class TrajectoryStore:
         fields["train"] = keep.to(torch.bool)
         if (memory := segment.get(keys.MEMORY, None)) is not None:
             fields["memory"] = memory
-            fields["agent"] = segment[keys.WORKER] * 2**32 + segment[keys.AGENT_ID]
+            worker = segment.get(keys.WORKER, torch.zeros_like(segment[keys.AGENT_ID]))
+            fields["agent"] = worker * 2**32 + segment[keys.AGENT_ID]
         if self.groupmates:
             mates = segment[keys.GROUPMATES]
             fields |= {"mate_obs/" + n: v for n, v in mates[keys.OBS].items()}

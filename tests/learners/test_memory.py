@@ -321,3 +321,26 @@ def test_agent_memories_are_bounded_and_forgotten():
     np.testing.assert_array_equal(memories.get(np.array([2, 1])), [[0, 0], [2, 2]])
     memories.forget(np.array([1]))
     np.testing.assert_array_equal(memories.get(np.array([1])), [[0, 0]])
+
+
+def test_the_learner_trains_memory_with_reward_signals(tmp_path):
+    """A behavior with memory and an intrinsic signal: RecurrentPPO, the signal's value head
+    on the critic's LSTM."""
+    from learners.config import load_config
+    from learners.learner import CentralLearner
+
+    path = write(tmp_path, "      memory:\n        memory_size: 16\n        sequence_length: 4\n")
+    text = path.read_text() + (
+        "    hyperparameters: {buffer_size: 64, batch_size: 16}\n"
+        "    reward_signals:\n      extrinsic: {gamma: 0.99}\n      rnd: {strength: 0.01}\n"
+    )
+    path.write_text(text)
+    learner = CentralLearner(load_config(path))
+    spec = vector_spec(4, 0, (2,))
+    batch = segment(spec, 20, 4, behavior="Hallway?team=0")
+    batch[keys.MEMORY] = torch.zeros(80, 16)
+    learner.submit([batch])
+    (state,) = learner.behaviors.values()
+    assert isinstance(state.algorithm, RecurrentPPO) and state.updates
+    (_, _, report), *_ = learner.drain_reports()
+    assert "Policy/Rnd Value Estimate" in report and report["Losses/Value Loss"] >= 0
