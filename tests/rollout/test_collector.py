@@ -299,3 +299,50 @@ def test_a_lesson_with_require_reset_drops_rows_in_progress_and_resets_unity(all
         assert collector.counts()["3DBall?team=0"].produced > after.produced
     finally:
         collector.close()
+
+
+def test_a_policy_with_memory_carries_each_agents_memory_across_gaps_and_resets_it(allocator):
+    """Echo's agents skip decisions, end episodes and switch behaviors: each step stores the
+    memory its decision read; an episode's first step reads zeros, and every later one the
+    memory the agent's previous decision left (recomputed here with the same actor)."""
+    from learners.factory import PolicyFactory
+    from learners.settings import MemorySettings, NetworkSettings
+
+    factory = PolicyFactory(default=NetworkSettings(hidden_units=8, memory=MemorySettings(8, 4)))
+    collector = Collector(
+        UnityConfig("unitysim:Echo", seed=4, num_areas=2), factory, horizon=16, allocator=allocator
+    )
+    rows: dict[tuple[str, int], list[tuple[float, float, np.ndarray, np.ndarray]]] = {}
+    try:
+        for _ in range(30):
+            for segment in collect(collector, 20):
+                behavior = segment.get_non_tensor(keys.BEHAVIOR)
+                obs, memory = segment[keys.OBS, "Echo"].numpy(), segment[keys.MEMORY].numpy()
+                for row in range(segment.batch_size[0]):
+                    key = (behavior, int(obs[row, 0]))
+                    rows.setdefault(key, []).append(
+                        (obs[row, 1], obs[row, 2], obs[row], memory[row])
+                    )
+        actors = dict(collector.actors)
+    finally:
+        collector.close()
+    firsts = chained = gaps = carried = 0
+    for (behavior, _), steps in rows.items():
+        steps.sort(key=lambda s: (s[0], s[1]))  # episode, then step within it
+        for index, (episode, step, _, memory) in enumerate(steps):
+            if step == 0:
+                np.testing.assert_array_equal(memory, 0.0)
+                firsts += 1
+                continue
+            before = steps[index - 1] if index else None
+            if before is None or before[0] != episode:
+                continue  # the episode's earlier steps were not collected yet
+            after = actors[behavior].act_recurrent(
+                {"Echo": before[2][None]}, None, before[3][None]
+            )[3]
+            np.testing.assert_allclose(memory, after[0], atol=1e-6)
+            chained += 1
+            gaps += step - before[1] > 1  # the agent skipped decisions in between
+            carried += bool(np.abs(memory).max() > 0)  # (agent 0's first, all zeros, gives 0)
+    assert firsts > 10 and chained > 200 and gaps > 5, (firsts, chained, gaps)
+    assert carried > chained - 5
