@@ -204,14 +204,10 @@ def _scheduler(planned: TunePlan) -> Any:
     tuning = planned.tuning
     if tuning.scheduler == "pbt":
         interval = tuning.perturbation_interval or max(planned.report_every, planned.max_steps // 5)
-        # synchronous: trials that share a node run at different speeds, so the asynchronous
-        # form would rank a trial against the others' older reports (and the first to
-        # report could never be exploited); every trial is ranked at the same step
         return PopulationBasedTraining(
             time_attr="steps",
             perturbation_interval=interval,
             hyperparam_mutations=planned.search.mutations(),
-            synch=True,
         )
     if tuning.scheduler == "asha":
         return ASHAScheduler(

@@ -75,12 +75,9 @@ class SegmentBuilder:
         """``pixel_sensors``: sensors whose values are k/255 (Unity sent them as PNG), kept
         as uint8 0..255 from here to the learner: a quarter of float32's bytes.
         ``memory_size``: a recurrent policy's, whose memory each step keeps (``MEMORY``)."""
+        self.behavior, self.spec, self.horizon, self.worker = behavior, spec, horizon, worker
         self._memory = memory_size
-        self.behavior = behavior
-        self.spec = spec
         self._spec_dict = specs.spec_to_dict(spec)  # travels with each segment to the learner
-        self.horizon = horizon
-        self.worker = worker
         self.gone_after = gone_after or max(horizon, GONE_AFTER)
         self.counters = Counters()
         self.episodes: list[tuple[np.ndarray, np.ndarray]] = []  # (returns, lengths) batches
@@ -106,6 +103,7 @@ class SegmentBuilder:
             "disc": np.zeros((s, t, self._branches), np.int64),
             "mask": np.ones((s, t, self._mask_size), np.bool_),
             "logp": np.zeros((s, t, self._continuous + self._branches), np.float32),
+            "memory": np.zeros((s, t, self._memory), np.float32),  # 0 wide without memory
             "version": np.zeros((s, t), np.int64),
             "group": np.zeros((s, t), np.int64),
             "reward": np.zeros((s, t), np.float32),
@@ -117,6 +115,7 @@ class SegmentBuilder:
             "p_disc": np.zeros((s, self._branches), np.int64),
             "p_mask": np.ones((s, self._mask_size), np.bool_),
             "p_logp": np.zeros((s, self._continuous + self._branches), np.float32),
+            "p_memory": np.zeros((s, self._memory), np.float32),
             "p_version": np.zeros(s, np.int64),
             "p_group": np.zeros(s, np.int64),
             "length": np.zeros(s, np.int64),
@@ -128,9 +127,6 @@ class SegmentBuilder:
             "ep_length": np.zeros(s, np.int64),
             "agent": np.full(s, -1, np.int64),  # agent id per slot, -1 = free
         }
-        if self._memory:
-            fields["memory"] = np.zeros((s, t, self._memory), np.float32)
-            fields["p_memory"] = np.zeros((s, self._memory), np.float32)
         for name, shape in self._sensors:
             dtype = np.uint8 if name in self._pixels else np.float32
             fields[f"obs/{name}"] = np.zeros((s, t, *shape), dtype)
@@ -243,10 +239,8 @@ class SegmentBuilder:
         for (name, _), before, after in zip(self._sensors, acted, now, strict=True):
             f[f"obs/{name}"][slots, t] = before
             f[f"next/{name}"][slots, t] = after
-        for row in ("cont", "disc", "mask", "logp", "version", "group"):
+        for row in ("cont", "disc", "mask", "logp", "memory", "version", "group"):
             f[row][slots, t] = f[f"p_{row}"][slots]
-        if self._memory:
-            f["memory"][slots, t] = f["p_memory"][slots]
         f["reward"][slots, t] = reward
         f["group_reward"][slots, t] = group_reward
         f["done"][slots, t] = done
@@ -392,9 +386,7 @@ class SegmentBuilder:
         else:
             self.counters.lost_steps += lost
         dropped = lost + int(f["pending"][active].sum())
-        f["agent"][:] = -1
-        f["length"][:] = 0
-        f["pending"][:] = False
+        f["agent"][:], f["length"][:], f["pending"][:] = -1, 0, False
         self.groups.forget(np.arange(len(f["agent"])))
         self.counters.dropped_steps += dropped
         return dropped
