@@ -239,7 +239,7 @@ class NumpyActor:
         hidden = np.concatenate(parts, axis=1)
         for weight, bias in self._layers:
             hidden = hidden @ weight + bias
-            hidden *= 0.5 * (1.0 + np.tanh(0.5 * hidden))  # Swish: x sigmoid(x), no overflow
+            hidden *= _sigmoid(hidden)  # Swish: x sigmoid(x)
         next_memory = None
         if self._lstm is not None:
             hidden, next_memory = self._lstm_step(hidden, memory)
@@ -302,4 +302,5 @@ class NumpyActor:
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
+    """As tanh, so that no exp overflows."""
     return 0.5 * (1.0 + np.tanh(0.5 * x))

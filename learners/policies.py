@@ -217,12 +217,11 @@ class ActorCritic(nn.Module):
         obs: dict[str, torch.Tensor],
         mask: torch.Tensor | None = None,
         deterministic: bool = False,
-        memory: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(continuous [n, c], discrete [n, branches] int64, log-probs [n, c + branches])
         for a batch: one log-probability per action component (``LOG_PROB``). With memory,
-        from each agent's ``memory`` (None: zeros); ``act_recurrent`` also gives the next."""
-        return self.act_recurrent(obs, mask, memory, deterministic)[:3]
+        from zeros; ``act_recurrent`` takes each agent's memory and gives the next."""
+        return self.act_recurrent(obs, mask, None, deterministic)[:3]
 
     @torch.no_grad()
     def act_recurrent(

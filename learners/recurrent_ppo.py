@@ -96,7 +96,8 @@ class RecurrentPPO(PPO):
     def value_estimates(self, rows: Rows) -> tuple[torch.Tensor, torch.Tensor]:
         assert rows.memory is not None and rows.agent is not None
         seqs = sequences(rows.done, self.length)
-        order, chain_of, begin = self._chains(rows, seqs)
+        agents = rows.agent[seqs.starts].tolist()  # each piece's
+        order, chain_of, begin = self._chains(rows, seqs, agents)
         position = order[seqs.piece] + seqs.chunk  # the sequence's place along its chain
         chain = chain_of[seqs.piece]
         memory = begin  # [chains, M]: each chain's critic memory now
@@ -113,7 +114,7 @@ class RecurrentPPO(PPO):
                 memory[chain[at]] = memory_after
                 ends = at[seqs.chunk[at] == seqs.chunks[seqs.piece[at]] - 1]
                 after_piece[seqs.piece[ends]] = memory[chain[ends]]
-        self._remember(rows, seqs, after_piece)
+        self._remember(rows, seqs, agents, after_piece)
         next_value = torch.zeros_like(value)
         next_value[:-1] = value[1:]
         if len(rows.end_rows):
@@ -124,13 +125,12 @@ class RecurrentPPO(PPO):
         return value, next_value
 
     def _chains(
-        self, rows: Rows, seqs: Sequences
+        self, rows: Rows, seqs: Sequences, agents: list[int]
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Link each piece to the same agent's previous one in this update (unless it starts
         an episode: the actor's memory all zeros): per piece, where its first sequence sits
         along its chain and the chain's number; per chain, the critic memory it starts from."""
-        assert rows.memory is not None and rows.agent is not None
-        agents = rows.agent[seqs.starts].tolist()
+        assert rows.memory is not None
         fresh = (rows.memory[seqs.starts] == 0).all(-1).tolist()
         chunks = seqs.chunks.tolist()
         size = rows.memory.shape[1]
@@ -153,15 +153,14 @@ class RecurrentPPO(PPO):
             torch.stack(begin) if begin else rows.memory.new_zeros(0, size),
         )
 
-    def _remember(self, rows: Rows, seqs: Sequences, after_piece: torch.Tensor) -> None:
+    def _remember(
+        self, rows: Rows, seqs: Sequences, agents: list[int], after_piece: torch.Tensor
+    ) -> None:
         """Keep each agent's critic memory after its last piece, for its next one, unless
         its episode ended there for good."""
         last_rows = torch.cat([seqs.starts[1:] - 1, seqs.starts.new_tensor([len(rows) - 1])])
         going_on = (~rows.terminated[last_rows]).tolist() if len(seqs.starts) else []
-        assert rows.agent is not None
-        for p, (agent, keep) in enumerate(
-            zip(rows.agent[seqs.starts].tolist(), going_on, strict=True)
-        ):
+        for p, (agent, keep) in enumerate(zip(agents, going_on, strict=True)):
             self.carried.pop(agent, None)
             if keep:
                 self.carried[agent] = after_piece[p]

@@ -273,14 +273,19 @@ class Collector:
 
     def _recover(self, error: BaseException) -> None:
         """The player failed: drop partial rows (never sent), restart on a fresh port."""
-        dropped = sum(builder.drop_partial() for builder in self.builders.values())
-        for memories in self.memories.values():
-            memories.clear()
+        dropped = self._drop_partial()
         self.metrics.dropped_steps += dropped
         log.warning("worker %d: Unity failed (%s); dropped %d steps", self.worker, error, dropped)
         self.unity.restart(f"{type(error).__name__}: {error}")
         self.metrics.restarts = self.unity.restarts
         self.unity.reset()
+
+    def _drop_partial(self, lesson_reset: bool = False) -> int:
+        """Every episode starts anew: rows in progress and agents' memories go; the steps
+        dropped."""
+        for memories in self.memories.values():
+            memories.clear()
+        return sum(b.drop_partial(lesson_reset) for b in self.builders.values())
 
     def set_parameters(self, values: Values, reset: bool) -> None:
         """A new lesson's environment parameters; ``reset``: its ``require_reset``, so that
@@ -288,10 +293,7 @@ class Collector:
         mlagents-learn drops them)."""
         self.unity.set_parameters(values)
         if reset and self._started:
-            dropped = sum(b.drop_partial(lesson_reset=True) for b in self.builders.values())
-            self.metrics.dropped_steps += dropped
-            for memories in self.memories.values():
-                memories.clear()
+            self.metrics.dropped_steps += self._drop_partial(lesson_reset=True)
             self.unity.reset()
 
     # --- metrics ------------------------------------------------------------------------
