@@ -36,7 +36,6 @@ from learners.config_keys import (
     EXTRINSIC,
     INTRINSIC,
     INTRINSIC_TRAINERS,
-    MEMORY_TRAINERS,
     NETWORK,
     REWARD_UNSUPPORTED,
     RUN_KEYS,
@@ -141,7 +140,8 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
         if key not in NETWORK:
             raise unknown_key(net_path, key, NETWORK)
         parsed = NETWORK[key](f"{net_path}.{key}", value)
-        if key == "memory" and parsed is not None and trainer_type not in MEMORY_TRAINERS:
+        recurrent = trainer_type in TRAINERS and TRAINERS[trainer_type].recurrent is not None
+        if key == "memory" and parsed is not None and not recurrent:
             unsupported.append(f"{net_path}.{key}")
         else:
             layer.network[key] = parsed

@@ -143,7 +143,6 @@ ON_POLICY: dict[str, Check] = {
 # ML-Agents keys we do not implement, each with the value that asks for what we do anyway
 # (not reported; ALWAYS: reported whatever the value)
 ALWAYS = object()
-MEMORY_TRAINERS = ("ppo",)  # the trainers with network_settings.memory (others report it)
 
 
 def _memory(path: str, value: object) -> MemorySettings | None:

@@ -68,11 +68,7 @@ def make_algorithm(
 ) -> Algorithm:
     """The behavior's algorithm, on ``compute``'s device (the network must be there);
     ``experts``: gail's demonstrations (PPO's reward signals)."""
-    algorithm = trainer(settings).algorithm_class()
-    if settings.network_settings.memory is not None:  # only PPO's config takes memory
-        from learners.recurrent_ppo import RecurrentPPO
-
-        algorithm = RecurrentPPO
+    algorithm = trainer(settings).algorithm_class(settings.network_settings.memory is not None)
     if settings.reward_signals:
         return algorithm(network, settings, compute or Compute(), experts=experts)
     return algorithm(network, settings, compute or Compute())

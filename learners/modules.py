@@ -135,7 +135,11 @@ class PolicyParams(nn.Module):
 
     def forward(self, *sensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
         net = self.network
-        hidden = net.features(dict(zip(net.sensor_names, sensors, strict=True)))
+        return self.heads(net.features(dict(zip(net.sensor_names, sensors, strict=True))))
+
+    def heads(self, hidden: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The params from the actor's features (its trunk's, or its LSTM's output)."""
+        net = self.network
         out: tuple[torch.Tensor, ...] = ()
         if net.mean is not None:
             loc, log_std = net.mean_log_std(hidden)

@@ -25,10 +25,9 @@ branch's expectation, the policy loss the sum over branches (plus the continuous
 and each branch has its own entropy coefficient and target (``log_alpha``: the continuous
 part's first, then one per branch).
 
-The math is torchrl's ``SACLoss`` / ``DiscreteSACLoss`` (v2, two Q networks, l2), which
-this file used until 2026-11-25; written out, a gradient step on 3DBall's network takes
-a third of the time: the functional-parameter bookkeeping of those losses cost more than
-the tiny networks (docs/benchmarks.md).
+The math is torchrl's ``SACLoss`` / ``DiscreteSACLoss`` (v2, two Q networks, l2) written
+out: a gradient step on 3DBall's network takes a third of the time (docs/benchmarks.md).
+With ``network_settings.memory``, ``learners/recurrent_sac.py`` runs it on sequences.
 
 Off-policy by design: the policy lag ``add`` gets is ignored. The replay buffer is not in
 ``state_dict`` (a resumed run refills it before updating again).
@@ -50,9 +49,9 @@ from batches import keys
 from learners.devices import Compute
 from learners.modules import PolicyParams
 from learners.policies import ActorCritic
+from learners.q_networks import QNetwork
 from learners.rewards import extrinsic_reward
 from learners.schedules import decay
-from learners.sensors import SensorEncoder
 
 if TYPE_CHECKING:
     from learners.settings import TrainerSettings
@@ -65,45 +64,14 @@ DISCRETE_TARGET_ENTROPY_SCALE = 0.2  # ML-Agents' discrete_target_entropy_scale
 TINY_PROBABILITY = 1e-8  # log p of a masked action in the target (its weight p is 0)
 
 
-class QNetwork(nn.Module):
-    """Q(obs, continuous action) -> [1] (continuous) or [actions of every branch]
-    (discrete; hybrid: given the continuous action).
-
-    Own encoders (the policy's ``vis_encode_type`` per image sensor, as ML-Agents gives
-    each Q network its own body) over observations normalized with the policy's running
-    statistics, read but never trained here; then a SiLU MLP of the behavior's hidden
-    units and layers.
-    """
-
-    def __init__(self, network: ActorCritic, outputs: int, action_size: int = 0) -> None:
-        super().__init__()
-        self.norms = [e.norm for e in network.encoders]  # a list: not submodules/params
-        self.encoders = nn.ModuleList(
-            SensorEncoder(o.shape, network.settings, sensor=o.name)
-            for o in network.spec.observation_specs
-        )
-        width = sum(e.size for e in self.encoders) + action_size
-        layers: list[nn.Module] = []
-        for _ in range(network.settings.num_layers):
-            layers += [nn.Linear(width, network.settings.hidden_units), nn.SiLU()]
-            width = network.settings.hidden_units
-        self.body = nn.Sequential(*layers, nn.Linear(width, outputs))
-
-    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
-        parts = []
-        for encoder, norm, x in zip(self.encoders, self.norms, inputs, strict=False):
-            x = encoder(x)
-            parts.append(norm(x) if norm is not None else x)
-        parts += inputs[len(self.encoders) :]  # the action, for continuous Q
-        return self.body(torch.cat(parts, dim=-1))
-
-
 def masked_logits(logits: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     """Masked actions (mask False) get a finite logit of probability exactly 0."""
     return logits if mask is None else logits.masked_fill(~mask, MASKED_LOGIT)
 
 
 class SAC:
+    q_network: type[QNetwork] = QNetwork
+
     def __init__(
         self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
     ) -> None:
@@ -117,7 +85,9 @@ class SAC:
         device = self.compute.torch_device
         self.policy = PolicyParams(network)  # (loc, scale) and/or (logits of every branch,)
         outputs = sum(self.branches) or 1
-        self.q = nn.ModuleList(QNetwork(network, outputs, network.continuous) for _ in range(2))
+        self.q = nn.ModuleList(
+            self.q_network(network, outputs, network.continuous) for _ in range(2)
+        )
         self.q.to(device)
         self.q_target = copy.deepcopy(self.q).requires_grad_(False)
         for target, q in zip(self.q_target, self.q, strict=True):
@@ -143,8 +113,8 @@ class SAC:
         # compilable: plain counters, not multiprocessing.Value (this buffer never leaves
         # the learner process, and mp.Value would start a resource-tracker process)
         self.buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(h.buffer_size, device=device, compilable=True),
-            batch_size=h.batch_size,
+            storage=LazyTensorStorage(self.items(h.buffer_size), device=device, compilable=True),
+            batch_size=self.items(h.batch_size),
             compilable=True,
         )
         self.tau = h.tau
@@ -186,15 +156,25 @@ class SAC:
             transitions[keys.ACTION_MASK] = mask
             transitions[keys.NEXT, keys.ACTION_MASK] = next_mask(mask, nxt[keys.DONE])
         self.network.update_normalization(transitions[keys.OBS].to_dict())
-        self.buffer.extend(transitions)
+        self.store(transitions, segment)
         before = self.received
         self.received += steps
         self.new_steps += max(0, self.received - max(before, self.threshold))
         return steps
 
+    def items(self, steps: int) -> int:
+        """Replay items for ``steps`` steps (a recurrent SAC's items are sequences)."""
+        return steps
+
+    def store(self, transitions: TensorDict, segment: TensorDict) -> None:
+        self.buffer.extend(transitions)
+
+    def stored_steps(self) -> int:
+        return len(self.buffer)
+
     def ready(self) -> bool:
         h = self.settings.hyperparameters
-        return len(self.buffer) >= self.threshold and self.new_steps >= h.steps_per_update
+        return self.stored_steps() >= self.threshold and self.new_steps >= h.steps_per_update
 
     def wanted(self) -> None:
         return None  # off-policy: any amount of data is welcome at any time
@@ -242,20 +222,20 @@ class SAC:
         weights before the step, summed, one backward), then the Polyak target update.
         Returns detached scalars: the losses, the entropy, each Q's squared TD error and
         the mean Q of the stored actions."""
-        obs = [batch[keys.OBS, name] for name in self.network.sensor_names]
+        obs = self.inputs(batch)
         alpha = self.log_alpha.detach().exp()
         target = self.target(batch, alpha)  # its draw of a' comes first, as in torchrl's
         stored = [batch[CONTINUOUS_ACTION]] if self.continuous else []
-        values = torch.stack([q(*obs, *stored) for q in self.q])  # [2, B, outputs]
+        values = self.q_values(self.q, obs, stored)  # [2, B, outputs]
         taken = self._taken(values, batch)
-        params = self.policy(*obs)
+        params = self.policy_params(obs)
         neg_entropy: list[torch.Tensor] = []  # per part: E[log pi], [B]
         policy_loss = torch.zeros((), device=alpha.device)
         if self.continuous:
             action, log_prob = self._sample(params[0], params[1])
             for param in self._q_params:  # the actor's gradient reaches the action only
                 param.requires_grad_(False)
-            policy_values = torch.stack([q(*obs, action) for q in self.q]).min(0).values
+            policy_values = self.q_values(self.q, obs, [action]).min(0).values
             for param in self._q_params:
                 param.requires_grad_(True)
             policy_loss = (alpha[0] * log_prob).mean()
@@ -291,6 +271,21 @@ class SAC:
             "estimate": taken.detach().mean(),
         }
 
+    # the networks' inputs and passes (learners/recurrent_sac.py runs them over sequences)
+
+    def inputs(self, batch: TensorDict, after: bool = False) -> Any:
+        """What ``policy_params`` and ``q_values`` read of a batch (``after``: of the
+        states after its steps)."""
+        source = batch[keys.NEXT] if after else batch
+        return [source[keys.OBS, name] for name in self.network.sensor_names]
+
+    def policy_params(self, inputs: Any) -> tuple[torch.Tensor, ...]:
+        return self.policy(*inputs)
+
+    def q_values(self, qs: nn.ModuleList, inputs: Any, actions: list[torch.Tensor]) -> torch.Tensor:
+        """Both Qs' outputs ``[2, B, outputs]`` (continuous: of ``actions``)."""
+        return torch.stack([q(*inputs, *actions) for q in qs])
+
     def _split(self, values: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Q outputs (or logits) -> one tensor per branch."""
         return torch.split(values, self.branches, dim=-1)
@@ -321,13 +316,13 @@ class SAC:
         ``a' ~ pi(s')`` (continuous), the expectation over each branch's masked softmax
         (discrete: their mean over branches), both for hybrid actions."""
         nxt = batch[keys.NEXT]
-        next_obs = [nxt[keys.OBS, name] for name in self.network.sensor_names]
-        params = self.policy(*next_obs)
+        next_obs = self.inputs(batch, after=True)
+        params = self.policy_params(next_obs)
         sampled: list[torch.Tensor] = []
         if self.continuous:
             next_action, next_log_prob = self._sample(params[0], params[1])
             sampled = [next_action]
-        next_q = torch.stack([q(*next_obs, *sampled) for q in self.q_target])
+        next_q = self.q_values(self.q_target, next_obs, sampled)
         if not self.branches:
             next_value = (next_q.squeeze(-1) - alpha[0] * next_log_prob).min(0).values
         else:

@@ -39,6 +39,9 @@ class TrainerType:
     asynchronous: bool = False
     # ML-Agents' SAC policy: tanh-squashed actions, log-std from a head on the trunk
     squashed: bool = False
+    # "module:Class" of its algorithm with ``network_settings.memory``; None: the trainer
+    # has no memory (the config reports the key unsupported)
+    recurrent: str | None = None
 
     def settings(self) -> TrainerSettings:
         """ML-Agents' defaults for this trainer type."""
@@ -50,8 +53,11 @@ class TrainerType:
             return replace(settings, tanh_squash=True, conditional_sigma=True)
         return settings
 
-    def algorithm_class(self) -> Any:
-        module, name = self.algorithm.split(":")
+    def algorithm_class(self, memory: bool = False) -> Any:
+        """Its algorithm; with ``memory``, the recurrent one."""
+        path = self.recurrent if memory else self.algorithm
+        assert path is not None, f"{self.name} has no memory"
+        module, name = path.split(":")
         return getattr(importlib.import_module(module), name)
 
 
@@ -64,6 +70,7 @@ TRAINERS: Mapping[str, TrainerType] = {
             {**SHARED, **ON_POLICY, "max_policy_lag": int_from(0)},
             {"shared_critic": False},
             waits_for_fresh_data=True,
+            recurrent="learners.recurrent_ppo:RecurrentPPO",
         ),
         TrainerType(
             "sac",
@@ -81,6 +88,7 @@ TRAINERS: Mapping[str, TrainerType] = {
             {"save_replay_buffer": False},
             Hyperparameters(batch_size=128, buffer_size=50_000, learning_rate_schedule="constant"),
             squashed=True,
+            recurrent="learners.recurrent_sac:RecurrentSAC",
         ),
         TrainerType(  # PPO with a centralized critic over each group (learners/poca.py)
             "poca",

@@ -41,7 +41,7 @@ def test_the_copies_are_the_ones_the_issue_names():
         *(f"ppo/{n}" for n in ("Walker", "WallJump")),
         "ppo/WallJump_curriculum",
         *(f"sac/{n}" for n in ("3DBall", "3DBallHard", "Basic", "FoodCollector")),
-        *(f"sac/{n}" for n in ("GridWorld", "Walker", "WallJump")),
+        *(f"sac/{n}" for n in ("GridWorld", "Hallway", "Walker", "WallJump")),
     ]
 
 

@@ -1,7 +1,7 @@
-"""ML-Agents' ``ppo/Hallway.yaml`` (memory) through the whole system in local 2-core mode:
-two workers carry their agents' memories, the learner trains on sequences, the checkpoint
-exports with ML-Agents' memory inputs and outputs, and a resume or an initialization with
-another memory size is one line."""
+"""ML-Agents' ``ppo/Hallway.yaml`` and ``sac/Hallway.yaml`` (memory) through the whole
+system in local 2-core mode: two workers carry their agents' memories, the learner trains
+on sequences, the checkpoint exports with ML-Agents' memory inputs and outputs, and a
+resume or an initialization with another memory size is one line."""
 
 from __future__ import annotations
 
@@ -63,3 +63,20 @@ def test_mlagents_hallway_config_trains_with_memory(ray_session, tmp_path):
         assert "\n" not in line
         assert line.startswith(f"{option}: Hallway was trained with network_settings.memory")
         assert "memory_size 128, the config now gives 64" in line
+
+
+def test_mlagents_sac_hallway_config_trains_with_memory(ray_session, tmp_path):
+    """ML-Agents' ``sac/Hallway.yaml`` unchanged but for its summaries: the replay buffer
+    takes the workers' sequences and their memories, the Qs' LSTMs train, and the export
+    carries the memory."""
+    data = yaml.safe_load((CONFIG.parents[1] / "sac" / "Hallway.yaml").read_text())
+    data["behaviors"]["Hallway"]["summary_freq"] = 1000
+    config = tmp_path / "Hallway.yaml"
+    config.write_text(yaml.safe_dump(data))
+    result = train(options(tmp_path, config, run_id="sac", max_steps=2_100))
+    assert not result.interrupted and result.steps["Hallway?team=0"] >= 2_100
+    scalars = EventAccumulator(str(result.run_dir / "Hallway")).Reload().Scalars
+    assert any(e.value > 0 for e in scalars("Policy/Gradient Steps"))  # on sequences
+    assert all(e.value == e.value for e in scalars("Losses/Q1 Loss"))  # no NaN
+    (exported,) = export_checkpoint(result.run_dir)
+    assert [i.name for i in onnx.load(str(exported)).graph.input][-1] == "recurrent_in"

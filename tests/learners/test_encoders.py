@@ -17,7 +17,7 @@ from learners.encoders import MIN_SIZE, ImageTooSmall, ResidualBlock, visual_enc
 from learners.factory import PolicyFactory
 from learners.modules import ActionDistribution
 from learners.policies import ActorCritic
-from learners.sac import QNetwork
+from learners.q_networks import QNetwork
 from learners.settings import NetworkSettings
 from tests.learners.fakes import IMAGE, VECTOR
 

@@ -54,7 +54,7 @@ def test_a_bad_memory_is_one_line(tmp_path, network, message):
 
 
 def test_memory_under_a_trainer_without_it_is_reported(tmp_path):
-    config = load_config(write(tmp_path, "      memory:\n        memory_size: 32\n", "sac"))
+    config = load_config(write(tmp_path, "      memory:\n        memory_size: 32\n", "impala"))
     assert config.unsupported == ("behaviors.Hallway.network_settings.memory",)
     assert config.behaviors["Hallway"].network_settings.memory is None
 
@@ -234,16 +234,18 @@ def test_ppo_with_memory_learns_to_recall_a_cue():
     assert np.mean(scores[-5:]) < 0.65, scores
 
 
-def test_the_onnx_export_carries_the_memory_in_and_out(tmp_path):
+@pytest.mark.parametrize("squashed", [False, True], ids=["ppo", "sac"])
+def test_the_onnx_export_carries_the_memory_in_and_out(tmp_path, squashed):
     """ML-Agents' layout: ``recurrent_in`` [batch, 1, memory_size] last in, ``recurrent_out``
-    last out, ``memory_size`` its size; three steps in onnxruntime act as the network."""
+    last out, ``memory_size`` its size; three steps in onnxruntime act as the network (PPO's
+    policy, and SAC's, squashed with a log-std head)."""
     import onnx
     import onnxruntime as ort
 
     from learners.export import export_onnx
 
     spec = vector_spec(6, 2, (3,))
-    network = memory_network(spec)
+    network = memory_network(spec, tanh_squash=squashed, conditional_sigma=squashed)
     for p in network.parameters():
         p.data.add_(0.1 * torch.randn_like(p))
     path = export_onnx(network, tmp_path / "Hallway.onnx")
