@@ -35,7 +35,6 @@ from learners.config_keys import (
     ENGINE_UNSUPPORTED,
     EXTRINSIC,
     INTRINSIC,
-    INTRINSIC_TRAINERS,
     NETWORK,
     REWARD_UNSUPPORTED,
     RUN_KEYS,
@@ -152,7 +151,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
     for key, value in section(reward_path, data.get("reward_signals")).items():
         if key in INTRINSIC:
             signal = intrinsic_signal(f"{reward_path}.{key}", key, value)
-            if trainer_type in INTRINSIC_TRAINERS:
+            if trainer_type in TRAINERS and TRAINERS[trainer_type].signals:
                 layer.intrinsic[key] = signal
             else:
                 unsupported.append(f"{reward_path}.{key}")

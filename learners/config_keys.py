@@ -229,8 +229,7 @@ def _optional(check: Check) -> Check:
     return lambda path, value: None if value is None else check(path, value)
 
 
-INTRINSIC = ("curiosity", "gail", "rnd")  # reward signals besides extrinsic (PPO)
-INTRINSIC_TRAINERS = ("ppo",)
+INTRINSIC = ("curiosity", "gail", "rnd")  # reward signals besides extrinsic (TrainerType.signals)
 INTRINSIC_RATE = {"curiosity": 3.0e-4, "gail": 3.0e-4, "rnd": 1.0e-4}  # ML-Agents' defaults
 
 

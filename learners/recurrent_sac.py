@@ -25,11 +25,15 @@ from tensordict import TensorDict
 from batches import keys
 from learners.q_networks import RecurrentQNetwork
 from learners.recurrent_ppo import sequences
-from learners.sac import CONTINUOUS_ACTION, SAC
+from learners.sac import SAC
+from learners.sac_terms import CONTINUOUS_ACTION
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
     from torch import nn
 
+    from batches.expert_steps import ExpertSteps
     from learners.devices import Compute
     from learners.policies import ActorCritic
     from learners.settings import TrainerSettings
@@ -41,13 +45,17 @@ class RecurrentSAC(SAC):
     q_network = RecurrentQNetwork
 
     def __init__(
-        self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+        self,
+        network: ActorCritic,
+        settings: TrainerSettings,
+        compute: Compute | None = None,
+        experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
         memory = settings.network_settings.memory
         assert memory is not None and network.lstm is not None
         self.length = memory.sequence_length
         self._sequences: TensorDict | None = None  # the gradient step's, [B, L]
-        super().__init__(network, settings, compute)
+        super().__init__(network, settings, compute, experts)
 
     def items(self, steps: int) -> int:
         return max(1, steps // self.length)
@@ -61,6 +69,11 @@ class RecurrentSAC(SAC):
 
     def stored_steps(self) -> int:
         return len(self.buffer) * self.length
+
+    def sample(self) -> TensorDict:
+        """The real steps of sampled sequences (what the signals train on)."""
+        sampled = self.buffer.sample()
+        return sampled[sampled[VALID]]
 
     def gradient_step(self, batch: TensorDict) -> dict[str, torch.Tensor]:
         """SAC's step on the real steps of sampled sequences ``[B, L]``; the networks run
@@ -97,9 +110,9 @@ class RecurrentSAC(SAC):
         return self.policy.heads(hidden[:, n - self.length :][seqs[VALID]])
 
     def q_values(self, qs: nn.ModuleList, inputs: Any, actions: list[torch.Tensor]) -> torch.Tensor:
-        """Both Qs over the sequences from zero memory ``[2, real steps, outputs]``; a
-        continuous ``actions`` (one per real step) is laid back along the sequences, after
-        the stored first action when the inputs start one state earlier."""
+        """Both Qs over the sequences from zero memory ``[2, real steps, streams,
+        outputs]``; a continuous ``actions`` (one per real step) is laid back along the
+        sequences, after the stored first action when the inputs start a state earlier."""
         seqs = self._sequences
         assert seqs is not None
         valid = seqs[VALID]
@@ -112,4 +125,4 @@ class RecurrentSAC(SAC):
                 laid = torch.cat([seqs[CONTINUOUS_ACTION][:, :1], laid], dim=1)
             along = [laid]
         out = torch.stack([q.sequences(*inputs, *along) for q in qs])
-        return out[:, :, n - self.length :][:, valid]
+        return out[:, :, n - self.length :][:, valid].unflatten(-1, (self.streams, -1))

@@ -18,6 +18,10 @@ step per ``steps_per_update`` new steps (at most ``MAX_GRADIENT_STEPS``), each o
   ``0.2 log(actions)``);
 - then the target Qs move by ``tau`` (Polyak).
 
+Curiosity, RND and GAIL as ML-Agents' SAC has them (``learners/sac_signals.py``): the Qs
+have outputs per reward stream, each regressing to its reward with its own gamma; the
+policy reads their mean.
+
 With several branches, as ML-Agents: a Q network outputs one value per action of every
 branch (given the continuous action, when there is one), ``Q(s, a)`` is the mean over
 branches of each branch's value of its action, ``V`` the mean over branches of each
@@ -29,7 +33,7 @@ The math is torchrl's ``SACLoss`` / ``DiscreteSACLoss`` (v2, two Q networks, l2)
 out: a gradient step on 3DBall's network takes a third of the time (docs/benchmarks.md).
 With ``network_settings.memory``, ``learners/recurrent_sac.py`` runs it on sequences.
 
-Off-policy by design: the policy lag ``add`` gets is ignored. The replay buffer is not in
+Off-policy: the policy lag ``add`` gets is ignored. The replay buffer is not in
 ``state_dict`` (a resumed run refills it before updating again).
 """
 
@@ -51,30 +55,39 @@ from learners.modules import PolicyParams
 from learners.policies import ActorCritic
 from learners.q_networks import QNetwork
 from learners.rewards import extrinsic_reward
+from learners.sac_signals import SacSignals
+from learners.sac_terms import (
+    CONTINUOUS_ACTION,
+    DISCRETE_ACTION,
+    expected_value,
+    log_probs,
+    next_mask,
+    split,
+    taken,
+)
 from learners.schedules import decay
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from batches.expert_steps import ExpertSteps
     from learners.settings import TrainerSettings
 
-# replay buffer: the continuous action (float [c]) and the discrete indices (int64 [k])
-CONTINUOUS_ACTION, DISCRETE_ACTION = "continuous_action", "discrete_action"
 MAX_GRADIENT_STEPS = 200  # per update() call, so one call stays short; the rest is dropped
-MASKED_LOGIT = -1e8  # finite, so p * log p is 0 (not nan) for masked actions
 DISCRETE_TARGET_ENTROPY_SCALE = 0.2  # ML-Agents' discrete_target_entropy_scale
-TINY_PROBABILITY = 1e-8  # log p of a masked action in the target (its weight p is 0)
-
-
-def masked_logits(logits: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
-    """Masked actions (mask False) get a finite logit of probability exactly 0."""
-    return logits if mask is None else logits.masked_fill(~mask, MASKED_LOGIT)
 
 
 class SAC:
     q_network: type[QNetwork] = QNetwork
 
     def __init__(
-        self, network: ActorCritic, settings: TrainerSettings, compute: Compute | None = None
+        self,
+        network: ActorCritic,
+        settings: TrainerSettings,
+        compute: Compute | None = None,
+        experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
+        """``experts``: the demonstrations of a ``gail`` signal, by ``demo_path``."""
         self.compute = compute or Compute()
         self.branches = tuple(network.branches)
         if not (network.continuous or self.branches):
@@ -84,7 +97,9 @@ class SAC:
         h = settings.hyperparameters
         device = self.compute.torch_device
         self.policy = PolicyParams(network)  # (loc, scale) and/or (logits of every branch,)
-        outputs = sum(self.branches) or 1
+        self.signals = SacSignals(network, settings.reward_signals, device, experts)
+        self.streams = 1 + len(self.signals)  # reward streams: the extrinsic, then the others
+        outputs = (sum(self.branches) or 1) * self.streams
         self.q = nn.ModuleList(
             self.q_network(network, outputs, network.continuous) for _ in range(2)
         )
@@ -121,6 +136,7 @@ class SAC:
         self.threshold = max(h.buffer_init_steps, h.batch_size)
         self.received = 0  # valid steps added, ever
         self.new_steps = 0.0  # steps past the threshold not yet paid in gradient steps
+        self.signal_steps = 0.0  # the same, not yet paid in the signals' updates
         self.gradient_steps = 0
         self.dropped_gradient_steps = 0  # owed beyond MAX_GRADIENT_STEPS, not taken
 
@@ -156,10 +172,14 @@ class SAC:
             transitions[keys.ACTION_MASK] = mask
             transitions[keys.NEXT, keys.ACTION_MASK] = next_mask(mask, nxt[keys.DONE])
         self.network.update_normalization(transitions[keys.OBS].to_dict())
+        if self.signals:
+            self.signals.update_normalization(transitions)
         self.store(transitions, segment)
         before = self.received
         self.received += steps
-        self.new_steps += max(0, self.received - max(before, self.threshold))
+        fresh = max(0, self.received - max(before, self.threshold))
+        self.new_steps += fresh
+        self.signal_steps += fresh
         return steps
 
     def items(self, steps: int) -> int:
@@ -200,10 +220,12 @@ class SAC:
             for key in ("policy", "alpha_loss", "entropy"):
                 totals[key] = totals[key] + last[key] if key in totals else last[key]
         self.gradient_steps += count
+        signals = self.train_signals()
         mean = {key: float(value) / max(count, 1) for key, value in totals.items()}
         # each Q's loss and estimate: of the last step only (one sync, not one per step)
         mean.update({key: float(last[key]) for key in ("q1", "q2", "estimate") if key in last})
         return {
+            **signals,
             "Losses/Policy Loss": mean.get("policy", 0.0),
             "Losses/Q1 Loss": mean.get("q1", 0.0),
             "Losses/Q2 Loss": mean.get("q2", 0.0),
@@ -217,6 +239,25 @@ class SAC:
             "Policy/Samples": float(count * h.batch_size),
         }
 
+    def train_signals(self) -> dict[str, float]:
+        """One update of the signals' networks per ``reward_signal_steps_per_update`` new
+        steps (capped as the gradient steps), each on a sampled batch; the mean losses."""
+        if not self.signals:
+            return {}
+        h = self.settings.hyperparameters
+        rate = h.reward_signal_steps_per_update or h.steps_per_update
+        owed = int(self.signal_steps / rate)
+        self.signal_steps -= owed * rate
+        sums: dict[str, float] = {}
+        for _ in range(min(owed, MAX_GRADIENT_STEPS)):
+            for name, value in self.signals.train(self.sample()).items():
+                sums[name] = sums.get(name, 0.0) + value
+        return {name: total / max(owed, 1) for name, total in sums.items()} | self.signals.report()
+
+    def sample(self) -> TensorDict:
+        """Sampled transitions ``[batch_size]``."""
+        return self.buffer.sample()
+
     def gradient_step(self, batch: TensorDict) -> dict[str, torch.Tensor]:
         """One step of all three losses on a sampled batch (each computed with the
         weights before the step, summed, one backward), then the Polyak target update.
@@ -226,8 +267,8 @@ class SAC:
         alpha = self.log_alpha.detach().exp()
         target = self.target(batch, alpha)  # its draw of a' comes first, as in torchrl's
         stored = [batch[CONTINUOUS_ACTION]] if self.continuous else []
-        values = self.q_values(self.q, obs, stored)  # [2, B, outputs]
-        taken = self._taken(values, batch)
+        values = self.q_values(self.q, obs, stored)  # [2, B, streams, outputs]
+        chosen = taken(values, batch.get(DISCRETE_ACTION, None), self.branches)  # [2, B, S]
         params = self.policy_params(obs)
         neg_entropy: list[torch.Tensor] = []  # per part: E[log pi], [B]
         policy_loss = torch.zeros((), device=alpha.device)
@@ -235,7 +276,7 @@ class SAC:
             action, log_prob = self._sample(params[0], params[1])
             for param in self._q_params:  # the actor's gradient reaches the action only
                 param.requires_grad_(False)
-            policy_values = self.q_values(self.q, obs, [action]).min(0).values
+            policy_values = self.q_values(self.q, obs, [action]).min(0).values.mean(-2)
             for param in self._q_params:
                 param.requires_grad_(True)
             policy_loss = (alpha[0] * log_prob).mean()
@@ -243,15 +284,15 @@ class SAC:
             if not self.branches:
                 policy_loss = policy_loss - policy_values.squeeze(-1).mean()
         else:
-            policy_values = values.detach().min(0).values
+            policy_values = values.detach().min(0).values.mean(-2)  # [B, outputs]
         if self.branches:
-            log_probs = self._log_probs(params[-1], batch[keys.ACTION_MASK])
-            parts = zip(log_probs, self._split(policy_values), strict=True)
+            each = log_probs(params[-1], batch[keys.ACTION_MASK], self.branches)
+            parts = zip(each, split(policy_values, self.branches), strict=True)
             for i, (log_prob, value) in enumerate(parts, start=int(self.continuous)):
                 prob = log_prob.exp()
                 policy_loss = policy_loss + (prob * (alpha[i] * log_prob - value)).sum(-1).mean()
                 neg_entropy.append((prob * log_prob).sum(-1).detach())
-        errors = (taken - target).square().mean(-1)  # [2]: each Q's mean squared TD error
+        errors = (chosen - target).square().flatten(1).mean(-1)  # [2]: each Q's, all streams
         ent = torch.stack(neg_entropy, dim=-1)  # [B, parts]
         alpha_loss = -(self.log_alpha * (ent + self.target_entropy)).mean(0).sum()
         for optimizer in self.optimizers:
@@ -268,7 +309,7 @@ class SAC:
             "entropy": -ent.sum(-1).mean(),
             "q1": errors[0],
             "q2": errors[1],
-            "estimate": taken.detach().mean(),
+            "estimate": chosen.detach()[..., 0].mean(),
         }
 
     # the networks' inputs and passes (learners/recurrent_sac.py runs them over sequences)
@@ -283,32 +324,8 @@ class SAC:
         return self.policy(*inputs)
 
     def q_values(self, qs: nn.ModuleList, inputs: Any, actions: list[torch.Tensor]) -> torch.Tensor:
-        """Both Qs' outputs ``[2, B, outputs]`` (continuous: of ``actions``)."""
-        return torch.stack([q(*inputs, *actions) for q in qs])
-
-    def _split(self, values: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Q outputs (or logits) -> one tensor per branch."""
-        return torch.split(values, self.branches, dim=-1)
-
-    def _log_probs(self, logits: torch.Tensor, mask: torch.Tensor) -> list[torch.Tensor]:
-        """Each branch's masked log-softmax (masked actions: probability exactly 0)."""
-        masks = self._split(mask)  # add() stores a mask with every discrete transition
-        return [
-            torch.log_softmax(masked_logits(part, m), dim=-1)
-            for part, m in zip(self._split(logits), masks, strict=True)
-        ]
-
-    def _taken(self, values: torch.Tensor, batch: TensorDict) -> torch.Tensor:
-        """Q of the stored actions, [2, B]: the mean over branches of each branch's value
-        of its action (ML-Agents' condensed Q); continuous only: the one output."""
-        if not self.branches:
-            return values.squeeze(-1)
-        actions = batch[DISCRETE_ACTION]
-        chosen = [
-            part.gather(-1, actions[:, i].view(1, -1, 1).expand(2, -1, 1)).squeeze(-1)
-            for i, part in enumerate(self._split(values))
-        ]
-        return torch.stack(chosen).mean(0)
+        """Both Qs' outputs ``[2, B, streams, outputs]`` (continuous: of ``actions``)."""
+        return torch.stack([q(*inputs, *actions) for q in qs]).unflatten(-1, (self.streams, -1))
 
     @torch.no_grad()
     def target(self, batch: TensorDict, alpha: torch.Tensor) -> torch.Tensor:
@@ -322,24 +339,24 @@ class SAC:
         if self.continuous:
             next_action, next_log_prob = self._sample(params[0], params[1])
             sampled = [next_action]
-        next_q = self.q_values(self.q_target, next_obs, sampled)
+        next_q = self.q_values(self.q_target, next_obs, sampled)  # [2, B, streams, outputs]
         if not self.branches:
-            next_value = (next_q.squeeze(-1) - alpha[0] * next_log_prob).min(0).values
+            entropy = alpha[0] * next_log_prob.unsqueeze(-1)
+            next_value = (next_q.squeeze(-1) - entropy).min(0).values  # [B, streams]
         else:
-            branch_values = []
-            parts = zip(self._split(params[-1]), self._split(next_q.min(0).values), strict=True)
-            masks = self._split(nxt[keys.ACTION_MASK])
-            for i, ((logits, value), mask) in enumerate(zip(parts, masks, strict=True)):
-                next_prob = torch.softmax(masked_logits(logits, mask), dim=-1)
-                next_log = torch.where(next_prob == 0, TINY_PROBABILITY, next_prob).log()
-                a = alpha[i + int(self.continuous)]
-                branch_values.append((next_prob * (value - a * next_log)).sum(-1))
-            next_value = torch.stack(branch_values).mean(0)
+            mask, a = nxt[keys.ACTION_MASK], alpha[int(self.continuous) :]
+            next_value = expected_value(params[-1], mask, next_q.min(0).values, a, self.branches)
             if self.continuous:
-                next_value = next_value - alpha[0] * next_log_prob
-        not_terminated = (~nxt[keys.TERMINATED]).squeeze(-1).to(next_value.dtype)
-        reward = nxt[keys.REWARD].squeeze(-1)
-        return reward + self.settings.gamma * not_terminated * next_value
+                next_value = next_value - alpha[0] * next_log_prob.unsqueeze(-1)
+        gamma = torch.full((1,), self.settings.gamma, device=next_value.device)
+        ends = torch.zeros(1, dtype=torch.bool, device=next_value.device)  # extrinsic: stops
+        reward = nxt[keys.REWARD]  # [B, 1]
+        if self.signals:
+            gamma = torch.cat([gamma, self.signals.gammas])
+            ends = torch.cat([ends, self.signals.ignore_done])
+            reward = torch.cat([reward, self.signals.rewards(batch)], dim=-1)
+        going = ~nxt[keys.TERMINATED] | ends  # [B, streams]: the stream goes on after it
+        return reward + gamma * going.to(next_value.dtype) * next_value
 
     def _sample(self, loc: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """A reparameterized tanh-squashed action in [-1, 1] and its log-probability."""
@@ -350,9 +367,10 @@ class SAC:
     # --- checkpoints --------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Optimizers, Q and target-Q weights, the entropy coefficient; not the buffer.
-        The policy's weights travel with the network, so they are left out here."""
+        """Optimizers, Q and target-Q weights, the entropy coefficient, the signals; not
+        the buffer. The policy's weights travel with the network, so they are left out."""
         return {
+            "signals": self.signals.state_dict(),
             "q": self.q.state_dict(),
             "q_target": self.q_target.state_dict(),
             "log_alpha": self.log_alpha.detach().clone(),
@@ -378,13 +396,5 @@ class SAC:
         self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
         self.gradient_steps = int(state.get("gradient_steps", 0))
         self.dropped_gradient_steps = int(state.get("dropped_gradient_steps", 0))
-
-
-def next_mask(mask: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
-    """The allowed-mask of each step's next state: the next step's own mask when it is in
-    the same trajectory (packed trajectories end with ``done``); otherwise (episode end,
-    horizon cut) all allowed, as no mask was observed for that state."""
-    result = torch.ones_like(mask)
-    follows = ~done[:-1, 0]
-    result[:-1] = torch.where(follows.unsqueeze(-1), mask[1:], True)
-    return result
+        if self.signals:
+            self.signals.load_state_dict(state["signals"])

@@ -109,19 +109,22 @@ class Signals:
         return out
 
     def state_dict(self) -> dict[str, Any]:
-        return {
-            "heads": self.heads.state_dict(),
-            "signals": [
-                {"networks": s.state_dict(), "optimizer": s.optimizer.state_dict()}
-                for s in self.items
-            ],
-        }
+        return {"heads": self.heads.state_dict(), "signals": signal_states(self.items)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.heads.load_state_dict(state["heads"])
-        for signal, saved in zip(self.items, state["signals"], strict=True):
-            signal.load_state_dict(saved["networks"])
-            signal.optimizer.load_state_dict(saved["optimizer"])
+        load_signal_states(self.items, state["signals"])
+
+
+def signal_states(items: list[Signal]) -> list[dict[str, Any]]:
+    """Each signal's networks and optimizer, for a checkpoint."""
+    return [{"networks": s.state_dict(), "optimizer": s.optimizer.state_dict()} for s in items]
+
+
+def load_signal_states(items: list[Signal], saved: list[dict[str, Any]]) -> None:
+    for signal, state in zip(items, saved, strict=True):
+        signal.load_state_dict(state["networks"])
+        signal.optimizer.load_state_dict(state["optimizer"])
 
 
 def transitions(rows: Rows, next_obs_too: bool = True) -> Transitions:

@@ -42,6 +42,8 @@ class TrainerType:
     # "module:Class" of its algorithm with ``network_settings.memory``; None: the trainer
     # has no memory (the config reports the key unsupported)
     recurrent: str | None = None
+    # it takes curiosity, rnd and gail (else the config reports them unsupported)
+    signals: bool = False
 
     def settings(self) -> TrainerSettings:
         """ML-Agents' defaults for this trainer type."""
@@ -71,6 +73,7 @@ TRAINERS: Mapping[str, TrainerType] = {
             {"shared_critic": False},
             waits_for_fresh_data=True,
             recurrent="learners.recurrent_ppo:RecurrentPPO",
+            signals=True,
         ),
         TrainerType(
             "sac",
@@ -81,14 +84,14 @@ TRAINERS: Mapping[str, TrainerType] = {
                 "tau": float_in(0, 1, open_low=True),
                 "steps_per_update": POSITIVE,
                 "init_entcoef": POSITIVE,
-                # how often reward signals with networks of their own update: the extrinsic
-                # signal, the only one we have, has none (as in ML-Agents)
+                # how often the networks of curiosity, rnd and gail update
                 "reward_signal_steps_per_update": POSITIVE,
             },
             {"save_replay_buffer": False},
             Hyperparameters(batch_size=128, buffer_size=50_000, learning_rate_schedule="constant"),
             squashed=True,
             recurrent="learners.recurrent_sac:RecurrentSAC",
+            signals=True,
         ),
         TrainerType(  # PPO with a centralized critic over each group (learners/poca.py)
             "poca",

@@ -18,9 +18,10 @@ from learners.config import load_config
 pytestmark = pytest.mark.integration
 
 CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
-# imitation/: their demo_path names a file of ML-Agents' repository (test_intrinsic_run,
-# test_cloning_run run them on recordings)
-FILES = sorted(p for p in CONFIGS.glob("*/*.yaml") if p.parent.name != "imitation")
+# imitation/ and sac/Pyramids: their demo_path names a file of ML-Agents' repository
+# (test_intrinsic_run, test_cloning_run run them on recordings)
+DEMOS = (*CONFIGS.glob("imitation/*.yaml"), CONFIGS / "sac" / "Pyramids.yaml")
+FILES = sorted(p for p in CONFIGS.glob("*/*.yaml") if p not in DEMOS)
 # the example a config is named after -> the unitysim environment that plays it
 ENVIRONMENTS = {"FoodCollector": "GridFoodCollector", "PyramidsRND": "Pyramids"}
 

@@ -1,4 +1,5 @@
-"""ML-Agents' ``ppo/Pyramids.yaml`` (curiosity) and ``ppo/PyramidsRND.yaml`` (RND), their
+"""ML-Agents' ``ppo/Pyramids.yaml`` (curiosity), ``ppo/PyramidsRND.yaml`` (RND),
+``imitation/Pyramids.yaml`` and ``sac/Pyramids.yaml`` (GAIL, on a recording), their
 summaries every 1,000 steps, past their first update on unitysim Pyramids in local
 2-core mode: each signal's reward, value estimate and losses reach TensorBoard under
 ML-Agents' tags."""
@@ -73,3 +74,20 @@ def test_mlagents_imitation_config_trains_with_gail_cloning_and_curiosity(ray_se
         "Losses/Pretraining Loss",
     ):
         assert tag in scalars, (tag, scalars)
+
+
+def test_mlagents_sac_pyramids_config_trains_with_gail(ray_session, tmp_path):
+    """ML-Agents' ``sac/Pyramids.yaml`` (GAIL under SAC), its ``demo_path`` pointing at
+    unitysim's expert recorded by ``record-demo``: the discriminator trains and the Qs
+    have a GAIL stream."""
+    demo = tmp_path / "ExpertPyramid.demo"
+    code, _, err = record(
+        tmp_path, "--env", "unitysim:Pyramids", "--heuristic", "--steps", "800", "--out", str(demo)
+    )
+    assert code == 0, err
+    data = yaml.safe_load((CONFIGS.parent / "sac" / "Pyramids.yaml").read_text())
+    data["behaviors"]["Pyramids"]["reward_signals"]["gail"]["demo_path"] = str(demo)
+    scalars = train_pyramids(tmp_path, data)
+    for tag in ("Policy/Gail Reward", "Losses/GAIL Loss", "Policy/GAIL Expert Estimate"):
+        assert tag in scalars, (tag, scalars)
+    assert "Losses/Q1 Loss" in scalars

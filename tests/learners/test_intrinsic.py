@@ -39,9 +39,11 @@ def test_signals_are_read_with_ml_agents_defaults():
 
 
 def test_signals_of_other_trainers_are_reported_and_a_bad_key_is_an_error():
-    sac = config({"extrinsic": {}, "curiosity": {}}, trainer="sac")
-    assert sac.unsupported == ("behaviors.B.reward_signals.curiosity",)
-    assert sac.behaviors["B"].reward_signals == ()
+    poca = config({"extrinsic": {}, "curiosity": {}}, trainer="poca")
+    assert poca.unsupported == ("behaviors.B.reward_signals.curiosity",)
+    assert poca.behaviors["B"].reward_signals == ()
+    sac = config({"extrinsic": {}, "curiosity": {}}, trainer="sac")  # learners/sac_signals.py
+    assert sac.unsupported == () and sac.behaviors["B"].reward_signals[0].kind == "curiosity"
     with pytest.raises(ConfigError, match=r"reward_signals.rnd.strenght: unknown key"):
         config({"rnd": {"strenght": 0.1}})
     with pytest.raises(ConfigError, match=r"reward_signals.curiosity.gamma"):

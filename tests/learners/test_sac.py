@@ -18,7 +18,8 @@ from learners.acting import NumpyActor
 from learners.config import defaults, load_config
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
-from learners.sac import MAX_GRADIENT_STEPS, SAC, masked_logits, next_mask
+from learners.sac import MAX_GRADIENT_STEPS, SAC
+from learners.sac_terms import masked_logits, next_mask, taken
 from learners.settings import NetworkSettings
 from rollout.ports import PortRange
 from tests.helpers import train_in_process
@@ -165,7 +166,8 @@ def test_several_branches_and_hybrid_actions_as_mlagents_condenses_them(continuo
         values[..., :3].gather(-1, a[:, :1].expand(2, -1, 1)).squeeze(-1)
         + values[..., 3:].gather(-1, a[:, 1:].expand(2, -1, 1)).squeeze(-1)
     ) / 2
-    torch.testing.assert_close(sac._taken(values, batch), by_hand)
+    streams = values.unsqueeze(-2)  # the extrinsic stream alone
+    torch.testing.assert_close(taken(streams, a, sac.branches)[..., 0], by_hand)
     alpha = sac.log_alpha.detach().exp()
     before = sac.target(batch, alpha) if not continuous else None
     if before is not None:  # no sampling: the masked action's value cannot matter
