@@ -33,6 +33,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import yaml
 from machine import machine  # benchmarks/machine.py
 from trainer_runs import Run, run_command
 
@@ -56,6 +57,9 @@ class Case:
     cap_s: float  # a run not there by then is stopped and reported as not reaching it
     measure: str = "reward"  # or "group" (POCA's mean group reward), "elo" (self-play)
     behavior: str | None = None  # read this behavior's summary lines only (None: any)
+    # steps of unitysim's scripted expert recorded by ``record-demo`` for the config's
+    # demo_path (GAIL's, behavioral cloning's), given to both trainers; 0: none
+    demo_steps: int = 0
 
 
 CASES = (
@@ -96,15 +100,23 @@ CASES = (
         "elo",
         "Goalie",  # the side that learns first, in both trainers
     ),
+    # ML-Agents' imitation configs (GAIL, behavioral cloning), on a recording of
+    # unitysim's expert made by our recorder, the same file for both trainers
+    Case(
+        "Pyramids-imitation", "Pyramids", "imitation_Pyramids.yaml", None, (), 900, demo_steps=5000
+    ),
+    Case("Hallway-imitation", "Hallway", "imitation_Hallway.yaml", None, (), 900, demo_steps=5000),
 )
 
 
-def anchor_run(case: Case, seed: int, build: Path, anchor: Path, work: Path, port: int) -> Run:
+def anchor_run(
+    case: Case, seed: int, build: Path, config: Path, anchor: Path, work: Path, port: int
+) -> Run:
     run = Run(ANCHOR, seed)
     command = [
         str(anchor / "venv/bin/python"),
         str(anchor / "mlagents_learn_launcher.py"),
-        str(CONFIGS / case.mlagents_config),
+        str(config),
         f"--env={build.with_suffix('')}",
         f"--run-id=ml-{case.name}-{seed}",
         "--no-graphics",
@@ -157,6 +169,42 @@ def our_run(
         if first_step is not None:
             run.first_step_s = round(first_step - run.launched_at, 2)
     return run
+
+
+def with_demo(case: Case, work: Path) -> Path:
+    """The case's ML-Agents config; with ``demo_steps``, a copy in ``work`` whose every
+    ``demo_path`` names a recording of unitysim's expert (made once per case)."""
+    config = CONFIGS / case.mlagents_config
+    if not case.demo_steps:
+        return config
+    demo = work / f"{case.env}-expert.demo"
+    if not demo.is_file():
+        subprocess.run(
+            [
+                str(ROOT / ".venv/bin/unity-rollout"),
+                "record-demo",
+                "--env",
+                f"unitysim:{case.env}",
+                "--heuristic",
+                "--steps",
+                str(case.demo_steps),
+                "--out",
+                str(demo),
+            ],
+            check=True,
+            capture_output=True,
+        )
+    data = yaml.safe_load(config.read_text())
+    for settings in data["behaviors"].values():
+        for section in (
+            settings.get("reward_signals", {}).get("gail"),
+            settings.get("behavioral_cloning"),
+        ):
+            if section is not None:
+                section["demo_path"] = str(demo)
+    copy = work / case.mlagents_config
+    copy.write_text(yaml.safe_dump(data))
+    return copy
 
 
 def reading(case: Case) -> tuple[float, str, str | None]:
@@ -273,12 +321,14 @@ def main() -> int:
             if args.cap:
                 case = dataclasses.replace(case, cap_s=args.cap)
             build = build_player(case.env, work)
+            mlagents_config = with_demo(case, work)
             rounds = []
             for seed in range(args.first_seed, args.first_seed + args.seeds):
-                runs = [anchor_run(case, seed, build, anchor, work, 31000 + 10 * seed)]
+                port = 31000 + 10 * seed
+                runs = [anchor_run(case, seed, build, mlagents_config, anchor, work, port)]
                 shipped = case.shipped_config
                 for variant, config in (
-                    (OURS_MLAGENTS, CONFIGS / case.mlagents_config),
+                    (OURS_MLAGENTS, mlagents_config),
                     (OURS_SHIPPED, ROOT / "config" / shipped if shipped else None),
                 ):
                     if variant not in args.skip and config is not None:
