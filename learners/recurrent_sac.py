@@ -29,12 +29,8 @@ from learners.sac import SAC
 from learners.sac_terms import CONTINUOUS_ACTION
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
-
     from torch import nn
 
-    from batches.expert_steps import ExpertSteps
-    from learners.devices import Compute
     from learners.policies import ActorCritic
     from learners.settings import TrainerSettings
 
@@ -45,17 +41,14 @@ class RecurrentSAC(SAC):
     q_network = RecurrentQNetwork
 
     def __init__(
-        self,
-        network: ActorCritic,
-        settings: TrainerSettings,
-        compute: Compute | None = None,
-        experts: Mapping[str, ExpertSteps] | None = None,
+        self, network: ActorCritic, settings: TrainerSettings, *args: Any, **kwargs: Any
     ) -> None:
+        """As ``SAC``'s (``compute``, ``experts`` after the settings)."""
         memory = settings.network_settings.memory
         assert memory is not None and network.lstm is not None
         self.length = memory.sequence_length
         self._sequences: TensorDict | None = None  # the gradient step's, [B, L]
-        super().__init__(network, settings, compute, experts)
+        super().__init__(network, settings, *args, **kwargs)
 
     def items(self, steps: int) -> int:
         return max(1, steps // self.length)

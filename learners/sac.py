@@ -66,6 +66,7 @@ from learners.sac_terms import (
     taken,
 )
 from learners.schedules import decay
+from learners.signals import make_signals
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -97,7 +98,8 @@ class SAC:
         h = settings.hyperparameters
         device = self.compute.torch_device
         self.policy = PolicyParams(network)  # (loc, scale) and/or (logits of every branch,)
-        self.signals = SacSignals(network, settings.reward_signals, device, experts)
+        signals = make_signals(network, settings.reward_signals, device, experts)
+        self.signals = SacSignals(network, signals)
         self.streams = 1 + len(self.signals)  # reward streams: the extrinsic, then the others
         outputs = (sum(self.branches) or 1) * self.streams
         self.q = nn.ModuleList(
@@ -248,11 +250,7 @@ class SAC:
         rate = h.reward_signal_steps_per_update or h.steps_per_update
         owed = int(self.signal_steps / rate)
         self.signal_steps -= owed * rate
-        sums: dict[str, float] = {}
-        for _ in range(min(owed, MAX_GRADIENT_STEPS)):
-            for name, value in self.signals.train(self.sample()).items():
-                sums[name] = sums.get(name, 0.0) + value
-        return {name: total / max(owed, 1) for name, total in sums.items()} | self.signals.report()
+        return self.signals.train(self.sample() for _ in range(min(owed, MAX_GRADIENT_STEPS)))
 
     def sample(self) -> TensorDict:
         """Sampled transitions ``[batch_size]``."""

@@ -7,31 +7,25 @@ batches of their own, one per ``reward_signal_steps_per_update`` new steps
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable
 from typing import Any
 
 import torch
 from tensordict import TensorDict
 
 from batches import keys
-from batches.expert_steps import ExpertSteps
 from learners.policies import ActorCritic
 from learners.sac_terms import CONTINUOUS_ACTION, DISCRETE_ACTION
-from learners.settings import RewardSignalSettings
-from learners.signal_base import Transitions
-from learners.signals import load_signal_states, make_signal, signal_states
+from learners.signal_base import Signal, Transitions
+from learners.signals import load_signal_states, signal_states
 
 
 class SacSignals:
-    def __init__(
-        self,
-        network: ActorCritic,
-        settings: tuple[RewardSignalSettings, ...],
-        device: torch.device | str = "cpu",
-        experts: Mapping[str, ExpertSteps] | None = None,
-    ) -> None:
-        self.items = [make_signal(network, s, experts or {}).to(device) for s in settings]
+    def __init__(self, network: ActorCritic, items: list[Signal]) -> None:
+        """``items``: the behavior's signals (``learners.signals.make_signals``)."""
+        self.items = items
         self.names = network.sensor_names
+        device = network.value.weight.device
         # each stream's gamma and whether an episode's end stops it (the extrinsic first)
         self.gammas = torch.tensor([s.gamma for s in self.items], device=device)
         self.ignore_done = torch.tensor([s.ignore_done for s in self.items], device=device)
@@ -64,15 +58,19 @@ class SacSignals:
         self.last_rewards = rewards.mean(0)
         return rewards
 
-    def train(self, batch: TensorDict) -> dict[str, float]:
-        """One step of every signal's networks on a sampled batch; their losses."""
-        steps = self.transitions(batch)
-        return {k: v for signal in self.items for k, v in signal.update(steps).items()}
-
-    def report(self) -> dict[str, float]:
-        """ML-Agents' ``Policy/<Signal> Reward``: here the mean over the last batch."""
+    def train(self, batches: Iterable[TensorDict]) -> dict[str, float]:
+        """One step of every signal's networks per sampled batch: their mean losses, and
+        ML-Agents' ``Policy/<Signal> Reward`` (here the mean over the last batch rewarded)."""
+        sums: dict[str, float] = {}
+        count = 0
+        for batch in batches:
+            steps, count = self.transitions(batch), count + 1
+            for signal in self.items:
+                for name, value in signal.update(steps).items():
+                    sums[name] = sums.get(name, 0.0) + value
         rewards = self.last_rewards.tolist()
-        return {f"Policy/{s.stat} Reward": r for s, r in zip(self.items, rewards, strict=True)}
+        report = {f"Policy/{s.stat} Reward": r for s, r in zip(self.items, rewards, strict=True)}
+        return {name: total / max(count, 1) for name, total in sums.items()} | report
 
     def state_dict(self) -> list[dict[str, Any]]:
         return signal_states(self.items)

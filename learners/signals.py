@@ -38,6 +38,16 @@ def make_signal(
     return GAIL(network.spec, settings, demo)
 
 
+def make_signals(
+    network: ActorCritic,
+    settings: tuple[RewardSignalSettings, ...],
+    device: torch.device | str = "cpu",
+    experts: Mapping[str, ExpertSteps] | None = None,
+) -> list[Signal]:
+    """The signals of ``settings`` on ``device``; ``experts``: gail's, by ``demo_path``."""
+    return [make_signal(network, s, experts or {}).to(device) for s in settings]
+
+
 class Signals:
     """``rewards`` on the update's rows (before it trains), ``train`` after its epochs,
     then ``report``; ``experts``: gail's demonstrations, by ``demo_path``."""
@@ -49,7 +59,7 @@ class Signals:
         device: torch.device | str = "cpu",
         experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
-        self.items = [make_signal(network, s, experts or {}).to(device) for s in settings]
+        self.items = make_signals(network, settings, device, experts)
         width = network.value.in_features
         self.heads = nn.ModuleList(xavier(width, 1) for _ in settings).to(device)
         self._steps: Transitions | None = None

@@ -4,6 +4,7 @@ the critic's memory along an agent's pieces, and PPO learning what only memory s
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -205,7 +206,8 @@ def recall_episodes(network: ActorCritic, agents: int, version: int, rng: torch.
     return batch, float((choice == cue).float().mean())
 
 
-def learn_recall(network: ActorCritic, learner: PPO, batches: int) -> list[float]:
+def learn_recall(network: ActorCritic, learner: Any, batches: int) -> list[float]:
+    """``learner``: PPO's or SAC's (tests/learners/test_recurrent_sac.py)."""
     rng = torch.Generator().manual_seed(1)
     scores: list[float] = []
     for version in range(batches):

@@ -19,7 +19,7 @@ from learners.recurrent_sac import VALID, RecurrentSAC
 from learners.sac import SAC
 from learners.settings import MemorySettings, NetworkSettings
 from tests.learners.fakes import segment, vector_spec
-from tests.learners.test_memory import CUE_STEPS, recall_episodes
+from tests.learners.test_memory import CUE_STEPS, learn_recall
 
 ANCHORS = Path(__file__).resolve().parents[3] / "shared" / "anchors" / "mlagents-configs"
 
@@ -112,26 +112,14 @@ def test_a_gradient_step_runs_and_the_state_round_trips(actions):
     assert any("lstm" in name for name, _ in fresh.q.named_parameters())
 
 
-def learn_recall(sac: SAC, batches: int) -> list[float]:
-    rng = torch.Generator().manual_seed(1)
-    scores: list[float] = []
-    for version in range(batches):
-        batch, score = recall_episodes(sac.network, 128, version, rng)
-        scores.append(score)
-        sac.add(batch, torch.zeros(len(batch), dtype=torch.int64))
-        if sac.ready():
-            sac.update(progress=0.0)
-        if np.mean(scores[-3:]) > 0.95:
-            break
-    return scores
-
-
 def test_sac_with_memory_learns_to_recall_a_cue():
     """Only the first step shows the cue; the last asks for it (tests/learners/test_memory.py).
     SAC with memory gets near every choice right; without, it stays near half."""
     spec = vector_spec(3, 0, (2,))
     hyper = {"batch_size": 64, "steps_per_update": 4.0, "learning_rate": 3e-3}
-    scores = learn_recall(build(spec, MemorySettings(32, CUE_STEPS), **hyper), 15)
+    sac = build(spec, MemorySettings(32, CUE_STEPS), **hyper)
+    scores = learn_recall(sac.network, sac, 15)
     assert np.mean(scores[-3:]) > 0.95, scores
-    scores = learn_recall(build(spec, None, **hyper), 10)
+    sac = build(spec, None, **hyper)
+    scores = learn_recall(sac.network, sac, 10)
     assert np.mean(scores[-5:]) < 0.65, scores
