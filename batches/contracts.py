@@ -65,7 +65,7 @@ class Actor(Protocol):
 
 class RecurrentActor(Actor, Protocol):
     """An actor whose policy has memory (``memory_size`` > 0): it acts from each agent's
-    memory ``[n, memory_size]`` and gives the next one last (``batches.memories``)."""
+    memory ``[n, memory_size]`` and gives the next one last (``rollout.segments``)."""
 
     @property
     def memory_size(self) -> int: ...

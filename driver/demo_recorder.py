@@ -18,6 +18,7 @@ the step instead.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal, Protocol
@@ -25,11 +26,44 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps, TerminalSteps
 
-from batches.memories import AgentMemories
 from demonstrations import DemoStep
 from learners.policies import ActorCritic, TorchActor
-from rollout.segments import allowed_mask
+from rollout.decisions import allowed_mask
 from unitysim.experts import Expert
+
+KEPT = 65_536  # agents remembered at most: one that vanished without an episode end goes
+
+
+class AgentMemories:
+    """A recorded policy's memories ``[memory_size]`` by agent id (a worker keeps them in
+    its segment builder's slots); an agent never seen (or forgotten) has zeros."""
+
+    def __init__(self, size: int, kept: int = KEPT) -> None:
+        self.size, self.kept = size, kept
+        self._by_agent: OrderedDict[int, np.ndarray] = OrderedDict()  # least recent first
+
+    def __len__(self) -> int:
+        return len(self._by_agent)
+
+    def get(self, agents: np.ndarray) -> np.ndarray:
+        """``[n, size]`` float32: each agent's memory, zeros for one without."""
+        out = np.zeros((len(agents), self.size), np.float32)
+        for row, agent in enumerate(agents.tolist()):
+            if (memory := self._by_agent.get(agent)) is not None:
+                out[row] = memory
+        return out
+
+    def put(self, agents: np.ndarray, memories: np.ndarray) -> None:
+        for agent, memory in zip(agents.tolist(), memories, strict=True):
+            self._by_agent[agent] = memory
+            self._by_agent.move_to_end(agent)
+        while len(self._by_agent) > self.kept:
+            self._by_agent.popitem(last=False)
+
+    def forget(self, agents: np.ndarray) -> None:
+        """Agents whose episode ended: their next decision starts from zeros."""
+        for agent in agents.tolist():
+            self._by_agent.pop(agent, None)
 
 
 class StepActor(Protocol):

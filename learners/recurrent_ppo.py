@@ -3,7 +3,7 @@
 What differs from ``learners/ppo.py``, top to bottom:
 
 - Workers act through the actor's LSTM and store, with each step, the memory its decision
-  read (``batches/memories.py``); the store keeps it (``Rows.memory``).
+  read (``rollout/segments.py``); the store keeps it (``Rows.memory``).
 - The update cuts every stored trajectory piece into sequences of ``sequence_length``
   steps from its start, the last one padded at its end (``sequences``), as ML-Agents' buffer
   does.

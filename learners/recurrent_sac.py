@@ -5,7 +5,7 @@ What differs from ``learners/sac.py``:
 - The replay buffer holds sequences of ``sequence_length`` steps, cut from each stored
   trajectory piece from its start, the last one padded at its end
   (``learners.recurrent_ppo.sequences``), with the memory each step's decision read
-  (workers carry it, ``batches/memories.py``). A gradient step samples
+  (workers carry it, ``rollout/segments.py``). A gradient step samples
   ``batch_size / sequence_length`` sequences (at least one), as ML-Agents' SAC does.
 - The actor runs over each sequence from the memory stored at its first step, and over
   the states after its steps from the memory after that first step.

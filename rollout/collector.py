@@ -27,13 +27,13 @@ from mlagents_envs.base_env import ActionTuple, BehaviorSpec
 
 from batches import specs
 from batches.contracts import Actor, ActorFactory, RecurrentActor, Snapshot, Weights
-from batches.memories import AgentMemories
 from batches.parameters import Values
 from batches.segment import Segment
+from rollout.decisions import Decisions, allowed_mask
 from rollout.horizons import Horizons
 from rollout.ledger import Collected, Counts
 from rollout.ports import PortAllocator
-from rollout.segments import Decisions, SegmentBuilder, allowed_mask
+from rollout.segments import SegmentBuilder
 from rollout.unity import (
     RECOVERABLE,
     UnityConfig,
@@ -91,7 +91,6 @@ class Collector:
         self.worker = worker
         self.builders: dict[str, SegmentBuilder] = {}
         self.actors: dict[str, Actor] = {}
-        self.memories: dict[str, AgentMemories] = {}  # behaviors whose policy has memory
         self.weights: Weights = {}
         self.version = 0
         self._snapshots: OrderedDict[str, Any] = OrderedDict()  # key -> state, oldest first
@@ -216,8 +215,6 @@ class Collector:
                 builder = self._add_behavior(behavior, spec)
             self._agents_seen = self._agents_seen or bool(len(decisions) or len(terminals))
             builder.observe(decisions, terminals)
-            if len(terminals) and (memories := self.memories.get(behavior)) is not None:
-                memories.forget(np.asarray(terminals.agent_id, np.int64))
             finished = builder.collect(self.metrics.env_steps)
             if finished is not None:
                 pieces.setdefault(behavior, []).append(finished)
@@ -235,15 +232,13 @@ class Collector:
         actor = self.actor_factory(behavior, spec)
         self._load(behavior, actor)
         self.actors[behavior] = actor
-        if memory := getattr(actor, "memory_size", 0):
-            self.memories[behavior] = AgentMemories(memory)
         builder = SegmentBuilder(
             behavior,
             spec,
             self.horizons(behavior),
             worker=self.worker,
             pixel_sensors=pixels,
-            memory_size=memory,
+            memory_size=getattr(actor, "memory_size", 0),
         )
         self.builders[behavior] = builder
         self.metrics.specs[behavior] = specs.spec_to_dict(spec)
@@ -255,21 +250,19 @@ class Collector:
         branches = spec.action_spec.discrete_branches
         mask = allowed_mask(decisions, sum(branches)) if branches else None
         actor = self.actors[behavior]
-        memory = None
-        if (memories := self.memories.get(behavior)) is not None:
-            agents = np.asarray(decisions.agent_id, np.int64)
-            memory = memories.get(agents)
+        memory = after = None
+        if getattr(actor, "memory_size", 0):
+            memory = self.builders[behavior].memories(decisions)
             continuous, discrete, log_prob, after = cast("RecurrentActor", actor).act_recurrent(
                 obs, mask, memory
             )
-            memories.put(agents, after)
         else:
             continuous, discrete, log_prob = actor.act(obs, mask)
         self.unity.set_actions(
             behavior,
             ActionTuple(continuous=actor.to_unity(continuous), discrete=discrete.astype(np.int32)),
         )
-        return Decisions(continuous, discrete, log_prob, memory)
+        return Decisions(continuous, discrete, log_prob, memory, after)
 
     def _recover(self, error: BaseException) -> None:
         """The player failed: drop partial rows (never sent), restart on a fresh port."""
@@ -281,10 +274,8 @@ class Collector:
         self.unity.reset()
 
     def _drop_partial(self, lesson_reset: bool = False) -> int:
-        """Every episode starts anew: rows in progress and agents' memories go; the steps
-        dropped."""
-        for memories in self.memories.values():
-            memories.clear()
+        """Every episode starts anew: rows in progress and agents' memories go (with their
+        slots); the steps dropped."""
         return sum(b.drop_partial(lesson_reset) for b in self.builders.values())
 
     def set_parameters(self, values: Values, reset: bool) -> None:

@@ -26,21 +26,12 @@ from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
 
 from batches import keys, specs
 from batches.segment import Segment
+from rollout.decisions import Decisions, allowed_mask
 from rollout.groups import Groupmates
 
 INITIAL_SLOTS = 16
 STALE_FACTOR = 10  # an agent silent for STALE_FACTOR * gone_after exchanges is cut off
 GONE_AFTER = 64  # at least: exchanges an ended agent may stay away before its slot is freed
-
-
-@dataclass(frozen=True)
-class Decisions:
-    """What the policy chose for the decision agents of one exchange, in their order."""
-
-    continuous: np.ndarray  # float32 (n, continuous size)
-    discrete: np.ndarray  # int64 (n, branches)
-    log_prob: np.ndarray  # float32 (n, continuous size + branches): one per component
-    memory: np.ndarray | None = None  # float32 (n, memory size): what a recurrent policy read
 
 
 @dataclass
@@ -58,8 +49,14 @@ class SegmentBuilder:
     """Builds packed :class:`Segment` s for one behavior.
 
     Per exchange: ``observe(decisions, terminals)``, then ``collect()`` for finished rows,
-    then ``act(decisions, chosen, policy_version)`` with the policy's choices. Row storage
+    then (a recurrent policy) ``memories(decisions)`` for what it reads, then
+    ``act(decisions, chosen, policy_version)`` with the policy's choices. Row storage
     is ``(slots, horizon)`` per field, so the horizon bounds memory per agent.
+
+    A recurrent policy's memory after an agent's last decision lives in the agent's slot
+    (``carry``): kept across the agent's decision gaps, zeros at an episode's start, gone
+    with the slot (a freed agent, a Unity restart, a lesson reset), as ML-Agents' policy
+    keeps its memories by agent id.
     """
 
     def __init__(
@@ -116,6 +113,7 @@ class SegmentBuilder:
             "p_mask": np.ones((s, self._mask_size), np.bool_),
             "p_logp": np.zeros((s, self._continuous + self._branches), np.float32),
             "p_memory": np.zeros((s, self._memory), np.float32),
+            "carry": np.zeros((s, self._memory), np.float32),  # the memory its next decision reads
             "p_version": np.zeros(s, np.int64),
             "p_group": np.zeros(s, np.int64),
             "length": np.zeros(s, np.int64),
@@ -162,7 +160,7 @@ class SegmentBuilder:
             chosen = free[: len(new)]
             f = self._f
             f["agent"][chosen] = ids[new]
-            for name in ("length", "idle", "ep_return", "ep_length", "ep_group"):
+            for name in ("length", "idle", "ep_return", "ep_length", "ep_group", "carry"):
                 f[name][chosen] = 0
             for name in ("pending", "ended"):
                 f[name][chosen] = False
@@ -181,6 +179,7 @@ class SegmentBuilder:
             slots = slots_ended = self._slots(terminals.agent_id.astype(np.int64), create=False)
             known = slots >= 0
             f["ended"][slots[known]] = True
+            f["carry"][slots[known]] = 0.0  # the next episode starts from zeros
             f["idle"][slots[known]] = 0
             rows = np.flatnonzero(known & f["pending"][np.maximum(slots, 0)])
             self.counters.unmatched_terminals += len(terminals) - len(rows)
@@ -267,6 +266,10 @@ class SegmentBuilder:
             return values
         return np.rint(values * np.float32(255.0)).astype(np.uint8)
 
+    def memories(self, decisions: DecisionSteps) -> np.ndarray:
+        """``[n, memory_size]``: what each decision agent's recurrent policy reads."""
+        return self._f["carry"][self._slots(decisions.agent_id.astype(np.int64), create=True)]
+
     def act(self, decisions: DecisionSteps, chosen: Decisions, policy_version: int) -> None:
         """Remember what the decision agents were told to do, to complete next exchange."""
         if not len(decisions):
@@ -280,6 +283,8 @@ class SegmentBuilder:
         f["p_logp"][slots] = chosen.log_prob
         if self._memory and chosen.memory is not None:
             f["p_memory"][slots] = chosen.memory
+        if self._memory and chosen.after is not None:
+            f["carry"][slots] = chosen.after
         f["p_version"][slots] = policy_version
         f["p_group"][slots] = decisions.group_id
         if self._mask_size:
@@ -390,10 +395,3 @@ class SegmentBuilder:
         self.groups.forget(np.arange(len(f["agent"])))
         self.counters.dropped_steps += dropped
         return dropped
-
-
-def allowed_mask(decisions: DecisionSteps, size: int) -> np.ndarray:
-    """ML-Agents' per-branch masks (True = forbidden) as one flat allowed-mask."""
-    if decisions.action_mask is None:
-        return np.ones((len(decisions), size), np.bool_)
-    return ~np.concatenate(decisions.action_mask, axis=1)

@@ -315,7 +315,7 @@ def test_record_demo_acts_with_each_agents_memory():
 
 
 def test_agent_memories_are_bounded_and_forgotten():
-    from batches.memories import AgentMemories
+    from driver.demo_recorder import AgentMemories
 
     memories = AgentMemories(2, kept=3)
     memories.put(np.array([1, 2, 3]), np.ones((3, 2), np.float32))

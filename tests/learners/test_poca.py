@@ -18,7 +18,8 @@ from learners.poca import POCA
 from learners.policies import ActorCritic
 from learners.settings import NetworkSettings
 from learners.trajectory_store import TrajectoryStore
-from rollout.segments import Decisions, SegmentBuilder
+from rollout.decisions import Decisions
+from rollout.segments import SegmentBuilder
 from tests.learners.fakes import vector_spec
 
 SPEC = vector_spec(3, branches=(2,))

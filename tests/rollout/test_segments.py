@@ -70,7 +70,8 @@ def test_png_sensors_are_kept_as_exact_uint8_and_vectors_as_float32():
         TerminalSteps,
     )
 
-    from rollout.segments import Decisions, SegmentBuilder
+    from rollout.decisions import Decisions
+    from rollout.segments import SegmentBuilder
 
     plain = (DimensionProperty.NONE,)
     image = (
