@@ -115,6 +115,7 @@ class CentralLearner:
         self.version = 0
         self.behaviors: dict[str, BehaviorState] = {}
         self.stats = LearnerStats()
+        self._updating_since: float | None = None  # perf_counter when the update under way began
         self._sources = Sources()
         self._reports: list[tuple[str, int, dict[str, float]]] = []
         self._published: tuple[int, Weights] | None = None
@@ -261,11 +262,13 @@ class CentralLearner:
         return BehavioralCloning(network, settings.behavioral_cloning, h, experts, device)
 
     def _update(self, behavior: str, state: BehaviorState) -> None:
-        started = time.perf_counter()
-        # schedules run over the config's max_steps; --max-steps only stops the run early
-        report = state.algorithm.update(progress=state.steps / state.settings.max_steps)
-        if state.cloning is not None:
-            report |= state.cloning.update(state.steps)
+        started = self._updating_since = time.perf_counter()
+        try:  # schedules run over the config's max_steps; --max-steps only stops the run early
+            report = state.algorithm.update(progress=state.steps / state.settings.max_steps)
+            if state.cloning is not None:
+                report |= state.cloning.update(state.steps)
+        finally:
+            self._updating_since = None
         self.stats.update_seconds += time.perf_counter() - started
         self.stats.samples += int(report.get("Policy/Samples", 0))
         self.stats.updates += 1
@@ -282,7 +285,10 @@ class CentralLearner:
         # copies: as a Ray actor (learner_actor) this runs while ``submit`` may
         steps = {name: s.steps for name, s in list(self.behaviors.items())}
         done = all_done(steps, self.config, self.max_steps)
-        return {"version": self.version, "steps": steps, "done": done, "stats": replace(self.stats)}
+        stats = replace(self.stats)
+        if (since := self._updating_since) is not None:  # the update under way counts so far
+            stats.update_seconds += time.perf_counter() - since
+        return {"version": self.version, "steps": steps, "done": done, "stats": stats}
 
     def drain_reports(self) -> list[tuple[str, int, dict[str, float]]]:
         """(behavior, step, metrics) of each update since the last call (for TensorBoard)."""

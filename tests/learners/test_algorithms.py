@@ -312,3 +312,32 @@ def test_sources_stay_small_when_deliveries_come_in_order():
         assert sources.first(as_segment(batch, ("w", number)))
     assert not sources.first(as_segment(batch, ("w", 7)))
     assert sources._taken[("w", "A?team=0")] == (499, set())
+
+
+def test_progress_counts_the_update_under_way(monkeypatch):
+    """The learner's busy time, read while an update runs (its Ray actor answers progress
+    from another thread), includes that update so far: a window's busy fraction never
+    takes a whole update at once."""
+    import threading
+    import time
+
+    learner = CentralLearner(parse_config({"behaviors": {"A": {"trainer_type": "ppo"}}}))
+    spec = vector_spec(continuous=2)
+    learner.submit([as_segment(segment(spec, 1, 16, "A?team=0"), ("w", 1))])
+    state = learner.behaviors["A?team=0"]
+    started, release = threading.Event(), threading.Event()
+
+    def slow_update(progress: float) -> dict[str, float]:
+        started.set()
+        release.wait(5)
+        return {}
+
+    monkeypatch.setattr(state.algorithm, "update", slow_update)
+    worker = threading.Thread(target=learner._update, args=("A?team=0", state))
+    worker.start()
+    assert started.wait(5)
+    time.sleep(0.2)
+    during = learner.progress()["stats"].update_seconds
+    release.set()
+    worker.join(5)
+    assert 0.2 <= during <= learner.stats.update_seconds
