@@ -17,7 +17,7 @@ from learners.learner import make_algorithm
 from learners.policies import ActorCritic
 from learners.recurrent_sac import VALID, RecurrentSAC
 from learners.sac import SAC
-from learners.settings import MemorySettings, NetworkSettings
+from learners.settings import MemorySettings, NetworkSettings, RewardSignalSettings
 from tests.learners.fakes import segment, vector_spec
 from tests.learners.test_memory import CUE_STEPS, learn_recall
 
@@ -123,3 +123,19 @@ def test_sac_with_memory_learns_to_recall_a_cue():
     sac = build(spec, None, **hyper)
     scores = learn_recall(sac.network, sac, 10)
     assert np.mean(scores[-5:]) < 0.65, scores
+
+
+def test_memory_and_a_reward_signal_train_together():
+    """Curiosity under a recurrent SAC: its stream in the Qs, its networks trained on the
+    sampled sequences' real steps."""
+    spec = vector_spec(4, 0, (3,))
+    sac = build(spec, MemorySettings(8, 2), steps_per_update=1.0)
+    curiosity = RewardSignalSettings("curiosity", network_settings=NetworkSettings(16, 1))
+    settings = replace(sac.settings, reward_signals=(curiosity,))
+    sac = make_algorithm(sac.network, settings)
+    assert isinstance(sac, RecurrentSAC) and sac.streams == 2
+    for _ in range(3):
+        sac.add(pieces(spec, 8), torch.zeros(8, dtype=torch.int64))
+    report = sac.update(0.0)
+    assert np.isfinite(report["Losses/Curiosity Forward Loss"])
+    assert np.isfinite(report["Losses/Q1 Loss"])
