@@ -60,6 +60,7 @@ class Case:
     # steps of unitysim's scripted expert recorded by ``record-demo`` for the config's
     # demo_path (GAIL's, behavioral cloning's), given to both trainers; 0: none
     demo_steps: int = 0
+    held: int = 1  # summaries a level must hold for, on average (trainer_runs.Run.held)
 
 
 CASES = (
@@ -86,8 +87,8 @@ CASES = (
     Case("PyramidsRND-PPO", "Pyramids", "ppo_PyramidsRND.yaml", None, (), 900),
     # memory (an LSTM) on a Hallway whose symbol is out of sight from the goals; and the
     # same config without memory, to show what it does
-    Case("Hallway-PPO-memory", "Hallway", "ppo_Hallway.yaml", None, (), 1800),
-    Case("Hallway-PPO-no-memory", "Hallway", "ppo_Hallway_nomemory.yaml", None, (), 1800),
+    Case("Hallway-PPO-memory", "Hallway", "ppo_Hallway.yaml", None, (), 1800, held=3),
+    Case("Hallway-PPO-no-memory", "Hallway", "ppo_Hallway_nomemory.yaml", None, (), 1800, held=3),
     # self-play, ML-Agents' configs: ELO, to the level mlagents-learn ends its run at
     Case("SoccerTwos-POCA", "SoccerTwos", "poca_SoccerTwos.yaml", None, (), 900, "elo"),
     Case(
@@ -105,14 +106,23 @@ CASES = (
     Case(
         "Pyramids-imitation", "Pyramids", "imitation_Pyramids.yaml", None, (), 900, demo_steps=5000
     ),
-    Case("Hallway-imitation", "Hallway", "imitation_Hallway.yaml", None, (), 900, demo_steps=5000),
+    Case(
+        "Hallway-imitation",
+        "Hallway",
+        "imitation_Hallway.yaml",
+        None,
+        (),
+        900,
+        demo_steps=5000,
+        held=3,
+    ),
 )
 
 
 def anchor_run(
     case: Case, seed: int, build: Path, config: Path, anchor: Path, work: Path, port: int
 ) -> Run:
-    run = Run(ANCHOR, seed)
+    run = Run(ANCHOR, seed, held=case.held)
     command = [
         str(anchor / "venv/bin/python"),
         str(anchor / "mlagents_learn_launcher.py"),
@@ -139,7 +149,7 @@ def anchor_run(
 def our_run(
     case: Case, seed: int, build: Path, config: Path, variant: str, work: Path, stop_at: float
 ) -> Run:
-    run = Run(variant, seed)
+    run = Run(variant, seed, held=case.held)
     run_id = f"ours-{case.name}-{'ml' if variant == OURS_MLAGENTS else 'shipped'}-{seed}"
     command = [
         str(ROOT / ".venv/bin/unity-rollout"),
@@ -227,10 +237,10 @@ def ratio(ours: Run, anchor: Run, level: float, index: int) -> float | None:
 
 def levels(case: Case, anchor: Run | None) -> tuple[float, ...] | tuple[None]:
     """The levels a round measures: the case's targets, or the level mlagents-learn's run
-    ended at (its last summary; None before it ran, or when it printed none)."""
+    ended at (its last ``held`` summaries; None before it ran, or when it printed none)."""
     if case.targets:
         return case.targets
-    return (anchor.summaries[-1][2] if anchor is not None and anchor.summaries else None,)
+    return (anchor.end_level() if anchor is not None else None,)
 
 
 def print_round(case: Case, runs: list[Run]) -> None:

@@ -38,10 +38,23 @@ class Run:
     wall_s: float = 0.0
     leftovers: int = 0
     log: Path | None = None
+    # summaries a level must hold for, on average: 1 reads the first summary at it; more
+    # skip an early summary of the few short episodes (Hallway's first goals)
+    held: int = 1
 
     def reached(self, level: float) -> tuple[float, int] | None:
-        """(seconds, step) of the first summary at or above ``level``."""
-        return next(((t, s) for t, s, r in self.summaries if r >= level), None)
+        """(seconds, step) of the first summary from which the mean of ``held``
+        summaries is at or above ``level``."""
+        rewards = [r for _, _, r in self.summaries]
+        for i, (t, s, _) in enumerate(self.summaries[: len(rewards) - self.held + 1]):
+            if sum(rewards[i : i + self.held]) / self.held >= level:
+                return t, s
+        return None
+
+    def end_level(self) -> float | None:
+        """The level the run ended at: the mean of its last ``held`` summaries."""
+        last = [r for _, _, r in self.summaries[-self.held :]]
+        return sum(last) / len(last) if last else None
 
     def report(self, targets: tuple[float | None, ...]) -> dict:
         levels = {}
