@@ -109,7 +109,27 @@ def start_node(
     extra_env: dict[str, str] | None = None,
     loopback: bool = False,
 ) -> RayNode:
-    """Start a head (``head_address`` None) or a worker node; returns once it is up."""
+    """Start a head (``head_address`` None) or a worker node; returns once it is up. A
+    worker node the head did not register in time (Ray's own startup timeout, seen with the
+    suite's three workers on two cores) is started once more."""
+    args = (name, token, tag, head_address, num_cpus, extra_env, loopback)
+    try:
+        return _start_node(*args)
+    except RuntimeError as error:
+        if head_address is None or "timed out during startup" not in str(error):
+            raise
+    return _start_node(*args)
+
+
+def _start_node(
+    name: str,
+    token: str,
+    tag: str,
+    head_address: str | None,
+    num_cpus: int,
+    extra_env: dict[str, str] | None,
+    loopback: bool,
+) -> RayNode:
     temp_dir = Path(tempfile.mkdtemp(prefix=f"ur-{name}-", dir="/tmp"))
     names = ["gcs", "dashboard", "client", "node_manager", "object_manager", "agent_grpc"]
     names += ["agent_http", "runtime_env_agent", "metrics", "autoscaler_metrics"]
