@@ -118,7 +118,8 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
             unsupported.append(f"{path}.{key}")
 
     hyper_path = f"{path}.hyperparameters"
-    checks, extra = TRAINERS[trainer_type].hyperparameters, TRAINERS[trainer_type].unsupported
+    kind = TRAINERS[trainer_type]
+    checks, extra = kind.hyperparameters, kind.unsupported
     for key, value in section(hyper_path, data.get("hyperparameters")).items():
         if key in checks:
             layer.hyper[key] = checks[key](f"{hyper_path}.{key}", value)
@@ -139,8 +140,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
         if key not in NETWORK:
             raise unknown_key(net_path, key, NETWORK)
         parsed = NETWORK[key](f"{net_path}.{key}", value)
-        recurrent = trainer_type in TRAINERS and TRAINERS[trainer_type].recurrent is not None
-        if key == "memory" and parsed is not None and not recurrent:
+        if key == "memory" and parsed is not None and kind.recurrent is None:
             unsupported.append(f"{net_path}.{key}")
         else:
             layer.network[key] = parsed
@@ -151,7 +151,7 @@ def _parse_layer(path: str, raw: object, inherited_type: str, unsupported: list[
     for key, value in section(reward_path, data.get("reward_signals")).items():
         if key in INTRINSIC:
             signal = intrinsic_signal(f"{reward_path}.{key}", key, value)
-            if trainer_type in TRAINERS and TRAINERS[trainer_type].signals:
+            if kind.signals:
                 layer.intrinsic[key] = signal
             else:
                 unsupported.append(f"{reward_path}.{key}")

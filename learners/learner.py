@@ -67,7 +67,7 @@ def make_algorithm(
     experts: Mapping[str, ExpertSteps] | None = None,
 ) -> Algorithm:
     """The behavior's algorithm, on ``compute``'s device (the network must be there);
-    ``experts``: gail's demonstrations (PPO's reward signals)."""
+    ``experts``: gail's demonstrations (PPO's and SAC's reward signals)."""
     algorithm = trainer(settings).algorithm_class(settings.network_settings.memory is not None)
     if settings.reward_signals:
         return algorithm(network, settings, compute or Compute(), experts=experts)

@@ -38,7 +38,6 @@ class QNetwork(nn.Module):
             layers += [nn.Linear(width, network.settings.hidden_units), nn.SiLU()]
             width = network.settings.hidden_units
         self.body = nn.Sequential(*layers, nn.Linear(width, outputs))
-
         self.width = width  # the features before the output layer
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:

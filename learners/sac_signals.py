@@ -26,7 +26,7 @@ class SacSignals:
         self.items = items
         self.names = network.sensor_names
         device = network.value.weight.device
-        # each stream's gamma and whether an episode's end stops it (the extrinsic first)
+        # each signal's gamma, and whether its stream goes on past an episode's end
         self.gammas = torch.tensor([s.gamma for s in self.items], device=device)
         self.ignore_done = torch.tensor([s.ignore_done for s in self.items], device=device)
         self.last_rewards = torch.zeros(len(self.items), device=device)  # for the report

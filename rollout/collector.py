@@ -250,7 +250,7 @@ class Collector:
         branches = spec.action_spec.discrete_branches
         mask = allowed_mask(decisions, sum(branches)) if branches else None
         actor = self.actors[behavior]
-        memory = after = None
+        after = None
         if getattr(actor, "memory_size", 0):
             memory = self.builders[behavior].memories(decisions)
             continuous, discrete, log_prob, after = cast("RecurrentActor", actor).act_recurrent(
@@ -262,7 +262,7 @@ class Collector:
             behavior,
             ActionTuple(continuous=actor.to_unity(continuous), discrete=discrete.astype(np.int32)),
         )
-        return Decisions(continuous, discrete, log_prob, memory, after)
+        return Decisions(continuous, discrete, log_prob, after)
 
     def _recover(self, error: BaseException) -> None:
         """The player failed: drop partial rows (never sent), restart on a fresh port."""

@@ -16,8 +16,9 @@ class Decisions:
     continuous: np.ndarray  # float32 (n, continuous size)
     discrete: np.ndarray  # int64 (n, branches)
     log_prob: np.ndarray  # float32 (n, continuous size + branches): one per component
-    memory: np.ndarray | None = None  # float32 (n, memory size): what a recurrent policy read
-    after: np.ndarray | None = None  # float32 (n, memory size): what it left for the next
+    # float32 (n, memory size): what a recurrent policy left for the agents' next decisions
+    # (what it read is the builder's own: SegmentBuilder.memories)
+    after: np.ndarray | None = None
 
 
 def allowed_mask(decisions: DecisionSteps, size: int) -> np.ndarray:

@@ -281,9 +281,8 @@ class SegmentBuilder:
         f["p_cont"][slots] = chosen.continuous
         f["p_disc"][slots] = chosen.discrete
         f["p_logp"][slots] = chosen.log_prob
-        if self._memory and chosen.memory is not None:
-            f["p_memory"][slots] = chosen.memory
         if self._memory and chosen.after is not None:
+            f["p_memory"][slots] = f["carry"][slots]  # what the decision read (``memories``)
             f["carry"][slots] = chosen.after
         f["p_version"][slots] = policy_version
         f["p_group"][slots] = decisions.group_id
