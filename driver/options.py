@@ -370,6 +370,12 @@ class TuneOptions:
     perturbation_interval: int | None = option(
         None, "pbt: steps between exploit and explore (default: max_steps / 5)", check=at_least(1)
     )
+    quantile_fraction: float = option(
+        0.25,
+        "pbt: the share of trials that exploit the best ones at each perturbation (Tune's "
+        "quantile_fraction)",
+        check=lambda v: None if 0 < v <= 0.5 else f"in (0, 0.5], got {v:g}",
+    )
     report_every: int | None = option(
         None,
         "steps between a trial's reports (default: the ranked behavior's summary_freq)",

@@ -207,6 +207,7 @@ def _scheduler(planned: TunePlan) -> Any:
         return PopulationBasedTraining(
             time_attr="steps",
             perturbation_interval=interval,
+            quantile_fraction=tuning.quantile_fraction,
             hyperparam_mutations=planned.search.mutations(),
         )
     if tuning.scheduler == "asha":

@@ -269,8 +269,10 @@ class Collector:
         dropped = self._drop_partial()
         self.metrics.dropped_steps += dropped
         log.warning("worker %d: Unity failed (%s); dropped %d steps", self.worker, error, dropped)
-        self.unity.restart(f"{type(error).__name__}: {error}")
-        self.metrics.restarts = self.unity.restarts
+        try:
+            self.unity.restart(f"{type(error).__name__}: {error}")
+        finally:  # a restart whose player did not come up counts too
+            self.metrics.restarts = self.unity.restarts
         self.unity.reset()
 
     def _drop_partial(self, lesson_reset: bool = False) -> int:

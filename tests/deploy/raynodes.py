@@ -109,15 +109,15 @@ def start_node(
     extra_env: dict[str, str] | None = None,
     loopback: bool = False,
 ) -> RayNode:
-    """Start a head (``head_address`` None) or a worker node; returns once it is up. A
-    worker node the head did not register in time (Ray's own startup timeout, seen with the
-    suite's three workers on two cores) is started once more."""
+    """Start a head (``head_address`` None) or a worker node; returns once it is up. A node
+    that did not come up is stopped and started once more (on two loaded cores a head's
+    GCS has missed Ray's deadline for its node info, and a worker node has waited on the
+    head's GCS for a minute)."""
     args = (name, token, tag, head_address, num_cpus, extra_env, loopback)
     try:
         return _start_node(*args)
-    except RuntimeError as error:
-        if head_address is None or "timed out during startup" not in str(error):
-            raise
+    except RuntimeError:
+        pass
     return _start_node(*args)
 
 

@@ -21,10 +21,10 @@ pytestmark = pytest.mark.integration
 CONFIGS = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo"
 
 
-def train_pyramids(tmp_path: Path, data: dict) -> list[str]:
-    """ML-Agents' ``data`` with summaries every 1,000 steps, 4,200 steps on unitysim
-    Pyramids (buffer_size 2048: updates, with summaries between them); the scalar tags
-    its TensorBoard folder holds."""
+def train_pyramids(tmp_path: Path, data: dict, steps: int = 4_200) -> list[str]:
+    """ML-Agents' ``data`` with summaries every 1,000 steps, ``steps`` on unitysim Pyramids
+    (PPO's buffer_size 2048: two updates, with summaries between them); the scalar tags its
+    TensorBoard folder holds."""
     data["behaviors"]["Pyramids"]["summary_freq"] = 1000
     path = tmp_path / "Pyramids.yaml"
     path.write_text(yaml.safe_dump(data))
@@ -33,7 +33,7 @@ def train_pyramids(tmp_path: Path, data: dict) -> list[str]:
         config=str(path),
         results_dir=str(tmp_path),
         run_id="signals",
-        max_steps=4_200,
+        max_steps=steps,
         workers=1,
         progress=False,
     )
@@ -87,7 +87,7 @@ def test_mlagents_sac_pyramids_config_trains_with_gail(ray_session, tmp_path):
     assert code == 0, err
     data = yaml.safe_load((CONFIGS.parent / "sac" / "Pyramids.yaml").read_text())
     data["behaviors"]["Pyramids"]["reward_signals"]["gail"]["demo_path"] = str(demo)
-    scalars = train_pyramids(tmp_path, data)
+    scalars = train_pyramids(tmp_path, data, steps=2_200)  # gradient steps from 1,000 on
     for tag in ("Policy/Gail Reward", "Losses/GAIL Loss", "Policy/GAIL Expert Estimate"):
         assert tag in scalars, (tag, scalars)
     assert "Losses/Q1 Loss" in scalars

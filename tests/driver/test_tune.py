@@ -105,6 +105,8 @@ def test_options_a_tune_cannot_honour_are_errors(tmp_path):
             plan_tune(options, TuneOptions(search=search))
     with pytest.raises(TrainingError, match="--search: required"):
         TuneOptions().validate()
+    with pytest.raises(TrainingError, match=r"--quantile-fraction: in \(0, 0.5\], got 0.7"):
+        TuneOptions(search=search, quantile_fraction=0.7).validate()
 
 
 def test_an_existing_tune_run_is_not_overwritten_without_force(tmp_path):
@@ -114,7 +116,8 @@ def test_an_existing_tune_run_is_not_overwritten_without_force(tmp_path):
 
 
 def test_pbt_with_four_trials_on_two_cores(tmp_path):
-    """Steps: 4 trials x 4,000; PBT perturbs every 1,000 (three rounds)."""
+    """Steps: 4 trials x 4,000; PBT perturbs every 1,000 (three rounds), and the worse half
+    exploits: no exploit in 12 chances would be 1 in 4,096 by chance."""
     write(tmp_path / "config.yaml", CONFIG)
     write(tmp_path / "search.yaml", {LR: {"loguniform": [1e-4, 3e-3]}})
     registry = tmp_path / "ports"
@@ -122,7 +125,8 @@ def test_pbt_with_four_trials_on_two_cores(tmp_path):
     command = [
         sys.executable, "-m", "driver.cli", "tune", "config.yaml", "--search", "search.yaml",
         "--trials", "4", "--workers", "1", "--cpus", "2", "--max-steps", "4000",
-        "--perturbation-interval", "1000", "--run-id", "pbt", "--seed", "3",
+        "--perturbation-interval", "1000", "--quantile-fraction", "0.5",
+        "--run-id", "pbt", "--seed", "3",
     ]  # fmt: skip
     env = {
         **os.environ,

@@ -15,14 +15,17 @@ import os, random, signal, sys, time, torch
 from learners import checkpoint
 folder, rng = sys.argv[1], random.Random(7)
 state = {"step": 0, "version": 0, "behaviors": {"B": {"steps": 0, "w": torch.randn(4_000_000)}}}
-for kill in range(10):  # a child saves without pause; it is SIGKILLed at a random moment
+for kill in range(10):  # a child saves without pause; killed at a random moment after its first
     child = os.fork()
     if child == 0:
         for step in range(kill * 1000, (kill + 1) * 1000):
             state["step"] = state["behaviors"]["B"]["steps"] = step
             checkpoint.save(f"{folder}/step-{step:010d}.pt", state)
         os._exit(0)
-    time.sleep(rng.uniform(0.1, 0.5))
+    first, deadline = f"{folder}/step-{kill * 1000:010d}.pt", time.monotonic() + 60
+    while not os.path.exists(first) and time.monotonic() < deadline:  # a loaded machine
+        time.sleep(0.01)
+    time.sleep(rng.uniform(0.05, 0.4))
     os.kill(child, signal.SIGKILL)
     os.waitpid(child, 0)
 """

@@ -9,7 +9,7 @@ from learners.factory import actor_factory
 from rollout.collector import Collector
 from rollout.ports import PortAllocator, PortRange
 from rollout.restarts import RestartBudget, RestartPolicy, RestartRefused
-from rollout.unity import UnityConfig, UnityError
+from rollout.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import wait_gone
 
 
@@ -119,3 +119,29 @@ def test_a_build_that_fails_at_every_launch_stops_with_its_cause(allocator):
         assert collector.snapshot().restarts == 3
     finally:
         collector.close()  # no player left: the suite's autouse fixture checks it
+
+
+@pytest.mark.integration
+def test_restarts_whose_players_never_come_up_are_counted(allocator, monkeypatch):
+    """The player crashes; every relaunch then fails to connect (as a start slower than
+    ``timeout_wait`` does): the metrics count each of those restarts, not only the ones
+    that came up."""
+    config = UnityConfig(
+        "unitysim:3DBall",
+        additional_args=("--sim-crash-after", "40"),
+        restarts=RestartPolicy(max_lifetime_restarts=2, backoff_s=0.0),
+    )
+    collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
+    try:
+        collector.collect(min_steps=1)  # the first player is up
+
+        def never_connects() -> None:
+            raise UnityStartError("the player did not connect within timeout_wait")
+
+        monkeypatch.setattr(collector.unity, "start", never_connects)
+        with pytest.raises(UnityError, match="lifetime limit of 2 restarts reached"):
+            for _ in range(20):
+                collector.collect(min_steps=10)
+        assert collector.snapshot().restarts == 2
+    finally:
+        collector.close()

@@ -202,8 +202,8 @@ def test_fast_step_input_equals_mlagents_original():
         (("--sim-nan-after", "3"), 20),
         (
             ("--sim-hang-after", "3"),
-            8,
-        ),  # a hang is found after this; a start must fit in it (5 s failed under a loaded suite)
+            15,
+        ),  # a hang is found after this; a start must fit in it (8 s failed under a loaded suite)
     ],
     ids=["exit", "status-500", "oversized", "nan", "hang"],
 )
