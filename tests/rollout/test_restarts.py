@@ -75,6 +75,16 @@ def allocator(tmp_path):
     assert allocator.leases() == {}, "a test left a port leased"
 
 
+def faulty_3dball(
+    allocator: PortAllocator, flags: tuple[str, ...], policy: RestartPolicy, timeout_wait: int = 60
+) -> Collector:
+    """A collector of unitysim 3DBall whose every player has the fault ``flags``."""
+    config = UnityConfig(
+        "unitysim:3DBall", additional_args=flags, timeout_wait=timeout_wait, restarts=policy
+    )
+    return Collector(config, actor_factory, horizon=16, allocator=allocator)
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize(
     ("flags", "timeout_wait"),
@@ -85,13 +95,7 @@ def test_a_fault_on_every_launch_costs_restarts_not_the_run(allocator, flags, ti
     """Each launch gives good steps, then crashes (or hangs: found within ``timeout_wait``
     and killed at once; 6 s, as a player under a loaded suite took over 3 s to connect);
     after six such restarts collection goes on, and no player is left."""
-    config = UnityConfig(
-        "unitysim:3DBall",
-        additional_args=flags,
-        timeout_wait=timeout_wait,
-        restarts=RestartPolicy(backoff_s=0.0),
-    )
-    collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
+    collector = faulty_3dball(allocator, flags, RestartPolicy(backoff_s=0.0), timeout_wait)
     players: set[int] = set()
     try:
         while collector.snapshot().restarts < 6:
@@ -107,12 +111,8 @@ def test_a_fault_on_every_launch_costs_restarts_not_the_run(allocator, flags, ti
 
 @pytest.mark.integration
 def test_a_build_that_fails_at_every_launch_stops_with_its_cause(allocator):
-    config = UnityConfig(
-        "unitysim:3DBall",
-        additional_args=("--sim-crash-after", "1"),
-        restarts=RestartPolicy(max_failed_starts=3, backoff_s=0.01),
-    )
-    collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
+    policy = RestartPolicy(max_failed_starts=3, backoff_s=0.01)
+    collector = faulty_3dball(allocator, ("--sim-crash-after", "1"), policy)
     try:
         with pytest.raises(UnityError, match="4 launches in a row failed before a step"):
             collector.collect(min_steps=10)
@@ -126,12 +126,8 @@ def test_restarts_whose_players_never_come_up_are_counted(allocator, monkeypatch
     """The player crashes; every relaunch then fails to connect (as a start slower than
     ``timeout_wait`` does): the metrics count each of those restarts, not only the ones
     that came up."""
-    config = UnityConfig(
-        "unitysim:3DBall",
-        additional_args=("--sim-crash-after", "40"),
-        restarts=RestartPolicy(max_lifetime_restarts=2, backoff_s=0.0),
-    )
-    collector = Collector(config, actor_factory, horizon=16, allocator=allocator)
+    policy = RestartPolicy(max_lifetime_restarts=2, backoff_s=0.0)
+    collector = faulty_3dball(allocator, ("--sim-crash-after", "40"), policy)
     try:
         collector.collect(min_steps=1)  # the first player is up
 
