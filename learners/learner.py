@@ -184,11 +184,12 @@ class CentralLearner:
 
     def meet(self, specs: dict[str, dict[str, Any]]) -> None:
         """Behaviors the workers saw (``{behavior: spec dict}``), before any of their rows
-        arrive: a self-play team joins its controller's turns then, as in mlagents-learn
-        (a goalie's first row may take a long ``time_horizon`` to come)."""
+        arrive. Each is trained from then on, as mlagents-learn makes a trainer when a
+        behavior appears: the run is not done while one of them lacks its steps, and a
+        self-play team joins its controller's turns (a behavior's first row may take a long
+        ``time_horizon`` to come)."""
         for behavior, spec in specs.items():
-            if self.config.for_behavior(behavior).self_play is not None:
-                self._behavior(behavior, spec)
+            self._behavior(behavior, spec)
 
     def wanted(self) -> int | None:
         """Steps before the next on-policy update of any behavior (None: no such behavior),

@@ -9,6 +9,7 @@ import threading
 
 import pytest
 
+from batches.specs import spec_to_dict
 from learners.config import parse_config
 from learners.remote import BUILD_NICENESS, LearnerHost
 from tests.learners.fakes import segment, vector_spec
@@ -108,6 +109,29 @@ def test_the_demand_never_passes_max_steps_and_ends_at_zero(built):
             assert host.submit([piece(2), piece(3)])[1] == 0  # 96 steps of 80
         finally:
             host.gate.set()
+
+
+@pytest.mark.parametrize("built", [False, True], ids=["loading", "built"])
+def test_a_behavior_met_before_its_rows_counts_towards_the_end_of_the_run(built):
+    """As mlagents-learn makes a trainer when a behavior appears: a behavior the workers
+    saw, whose rows have not come yet (WallJump's SmallWallJump), keeps the run going
+    after the other has its steps."""
+    config = parse_config({"behaviors": {"A": {"trainer_type": "sac"}, "B": {}}})
+    host = HeldHost(config, 80, 1, seed=0)
+    try:
+        if built:
+            host.gate.set()
+            host.prepare()
+        host.meet({name: spec_to_dict(vector_spec(continuous=2)) for name in (BEHAVIOR, "B")})
+        host.submit([piece(1), piece(2), piece(3)])  # 96 steps of A's 80
+        progress = host.progress()
+        assert progress["steps"] == {BEHAVIOR: 96, "B": 0} and not progress["done"]
+        host.gate.set()
+        host.submit([as_segment(segment(vector_spec(continuous=2), 3, 32, "B"), ("w", 4))])
+        progress = host.progress()
+        assert progress["steps"] == {BEHAVIOR: 96, "B": 96} and progress["done"]
+    finally:
+        host.gate.set()
 
 
 def sac_config():
