@@ -85,6 +85,8 @@ CASES = (
     # a sparse reward, ML-Agents' intrinsic signals: curiosity, RND (to mlagents-learn's end)
     Case("Pyramids-PPO-curiosity", "Pyramids", "ppo_Pyramids.yaml", None, (), 900),
     Case("PyramidsRND-PPO", "Pyramids", "ppo_PyramidsRND.yaml", None, (), 900),
+    # the curiosity config without its curiosity section, to show what curiosity does
+    Case("Pyramids-PPO-no-curiosity", "Pyramids", "ppo_Pyramids_nocuriosity.yaml", None, (), 900),
     # memory (an LSTM) on a Hallway whose symbol is out of sight from the goals; and the
     # same config without memory, to show what it does
     Case("Hallway-PPO-memory", "Hallway", "ppo_Hallway.yaml", None, (), 1800, held=3),

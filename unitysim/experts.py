@@ -176,8 +176,8 @@ class HallwayExpert(Expert):
 
 class PyramidsExpert(Expert):
     """Pyramids: while the switch is off, go to it (seen by the rays ahead or behind);
-    once on, go to the pyramid (the gold seen by the high rays, the stones by the low
-    ones)."""
+    once on, go to the pyramid (the gold seen by the high rays, its bricks by the low
+    ones). Stone pyramids ahead are stepped around as walls are."""
 
     BLOCK, WALL, GOAL, SWITCH_OFF, SWITCH_ON, STONE = range(6)
 
@@ -191,8 +191,8 @@ class PyramidsExpert(Expert):
             if switched[row]:
                 seen = above[row] == self.GOAL
                 if not seen.any():
-                    seen = ahead[row] == self.STONE
-                in_back = (behind[row] == self.STONE).any()
+                    seen = ahead[row] == self.BLOCK
+                in_back = (behind[row] == self.BLOCK).any()
             else:
                 seen = ahead[row] == self.SWITCH_OFF
                 in_back = (behind[row] == self.SWITCH_OFF).any()
