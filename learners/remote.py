@@ -60,7 +60,6 @@ class LearnerHost:
         self._lock = threading.Lock()  # the learner's data: submits, flushes, state
         self._early: list[Any] = []  # segments taken before the learner was built
         self._early_steps: dict[str, int] = {}  # their steps per behavior
-        self._early_specs: dict[str, dict[str, Any]] = {}  # behaviors met before it was built
         self._sources = Sources()
         self._early_duplicates = 0
         self._builder = threading.Thread(
@@ -108,9 +107,6 @@ class LearnerHost:
         assert self._learner is not None
         self._learner.stats.duplicate_steps += self._early_duplicates
         self._early_duplicates = 0
-        if self._early_specs:
-            specs, self._early_specs = self._early_specs, {}
-            self._learner.meet(specs)
         if self._early:
             early, self._early = self._early, []
             for segment in early:  # one by one: progress counts each as it moves over
@@ -157,16 +153,14 @@ class LearnerHost:
         return demand(self._early_steps, self.config, self.max_steps, wants, self.inference)
 
     def meet(self, specs: dict[str, dict[str, Any]]) -> None:
-        """Behaviors the workers saw; kept for the learner while it is still being built
-        (their steps count from 0 until then)."""
+        """Behaviors the workers saw: their steps count from 0 at once, then the learner
+        (once built) trains each of them."""
         with self._lock:
-            if self._built.is_set():
-                self.learner.meet(specs)
-                return
-            self._early_specs.update(specs)
-            for behavior in specs:
-                if self.config.for_behavior(behavior).self_play is None:
-                    self._early_steps.setdefault(behavior, 0)
+            if not self._built.is_set():
+                for behavior in specs:
+                    if self.config.for_behavior(behavior).self_play is None:
+                        self._early_steps.setdefault(behavior, 0)
+            self.learner.meet(specs)
 
     def weights(self) -> tuple[int, dict[str, Any]]:
         with self._lock:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 
 import pytest
 
@@ -115,18 +116,26 @@ def test_the_demand_never_passes_max_steps_and_ends_at_zero(built):
 def test_a_behavior_met_before_its_rows_counts_towards_the_end_of_the_run(built):
     """As mlagents-learn makes a trainer when a behavior appears: a behavior the workers
     saw, whose rows have not come yet (WallJump's SmallWallJump), keeps the run going
-    after the other has its steps."""
+    after the other has its steps, from the moment it is met (the learner's build may
+    still take seconds then)."""
     config = parse_config({"behaviors": {"A": {"trainer_type": "sac"}, "B": {}}})
+    specs = {name: spec_to_dict(vector_spec(continuous=2)) for name in (BEHAVIOR, "B")}
     host = HeldHost(config, 80, 1, seed=0)
     try:
         if built:
             host.gate.set()
             host.prepare()
-        host.meet({name: spec_to_dict(vector_spec(continuous=2)) for name in (BEHAVIOR, "B")})
         host.submit([piece(1), piece(2), piece(3)])  # 96 steps of A's 80
+        meeting = threading.Thread(target=host.meet, args=(specs,))
+        meeting.start()  # while loading, it waits for the build
+        deadline = time.monotonic() + 10
+        while "B" not in host.progress()["steps"] and time.monotonic() < deadline:
+            time.sleep(0.01)
         progress = host.progress()
         assert progress["steps"] == {BEHAVIOR: 96, "B": 0} and not progress["done"]
         host.gate.set()
+        meeting.join(120)
+        assert not host.progress()["done"]
         host.submit([as_segment(segment(vector_spec(continuous=2), 3, 32, "B"), ("w", 4))])
         progress = host.progress()
         assert progress["steps"] == {BEHAVIOR: 96, "B": 96} and progress["done"]

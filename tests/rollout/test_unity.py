@@ -264,7 +264,7 @@ WRITES_ITS_LOG = 'while [ "$1" != -logFile ]; do shift; done; echo started > "$2
         ("exit 0", 30, "the player exited with code 0 before it connected", False),
         (WRITES_ITS_LOG + "exit 0", 30, "the player exited with code 0 before it", True),
         ("exec sleep 600", 2, "did not connect within timeout_wait (2 s)", False),
-        (WRITES_ITS_LOG + "exec sleep 600", 8, "did not connect within timeout_wait (8 s)", True),
+        (WRITES_ITS_LOG + "exec sleep 600", 15, "did not connect within timeout_wait (15 s)", True),
     ],
     ids=["exits", "exits-logged", "silent", "silent-logged"],
 )
