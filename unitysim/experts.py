@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from unitysim.envs.hallway import RAY_LENGTH
+from unitysim.envs.pyramids import RAY
 
 NOOP, FORWARD, BACK, RIGHT, LEFT = range(5)
 
@@ -177,9 +178,11 @@ class HallwayExpert(Expert):
 class PyramidsExpert(Expert):
     """Pyramids: while the switch is off, go to it (seen by the rays ahead or behind);
     once on, go to the pyramid (the gold seen by the high rays, its bricks by the low
-    ones). Stone pyramids ahead are stepped around as walls are."""
+    ones). Nothing in sight: look around, then walk toward the freest ray ahead (an
+    opening to the next room), turning off walls and stones."""
 
     BLOCK, WALL, GOAL, SWITCH_OFF, SWITCH_ON, STONE = range(6)
+    WALK = 20  # the agent is fast (4.5 per decision): long walks reach other rooms
 
     def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
         ahead, ahead_fraction = rays(observations[0], 6)
@@ -199,8 +202,13 @@ class PyramidsExpert(Expert):
             if not seen.any() and in_back:
                 self.side[agent] = LEFT  # turn around toward it
                 self.unseen[agent] = self.RECENT + 1
-            wall_close = bool(ahead_fraction[row, 0] * 20.0 < 1.5)
-            actions[row, 0] = self.home(agent, seen, wall_close)
+            wall_close = bool(ahead_fraction[row, 0] * RAY < 6.0)
+            move = self.home(agent, seen, wall_close)
+            free = ahead_fraction[row]
+            best = int(free.argmax())
+            if move == FORWARD and not seen.any() and free[best] - free[0] > 0.2:
+                move = RIGHT if best % 2 == 1 else LEFT  # toward open space: a door
+            actions[row, 0] = move
         return actions
 
 

@@ -48,8 +48,8 @@ def test_hallway_expert_goes_to_the_goal_of_the_symbols_colour():
 def test_pyramids_expert_presses_the_switch_and_reaches_the_gold():
     success, mean_return = play("Pyramids", 40, expert=True)
     random_success, random_return = play("Pyramids", 20, expert=False)
-    assert success >= 0.7 and mean_return >= 1.0  # measured over 100: 0.88, 1.41
-    assert random_success <= 0.2 and random_return < 0.0  # measured over 60: 0.00, -1.00
+    assert success >= 0.7 and mean_return >= 1.0  # measured over 100: 0.92, 1.49
+    assert random_success <= 0.2 and random_return < 0.0  # measured over 60: 0.03, -0.93
 
 
 def test_ray_reading_and_steering():

@@ -89,30 +89,36 @@ def test_pyramids_switch_then_pyramid_gives_two():
     assert got == pytest.approx(2.0, abs=0.01)
 
 
-def test_pyramids_spawn_areas_hold_one_thing_each_and_stones_stop_the_agent():
+def test_pyramids_spawn_areas_hold_one_thing_each_and_walls_and_stones_stop_the_agent():
     """As ``PyramidAgent.OnEpisodeBegin``: agent, switch, the pyramid's area and six stone
-    pyramids in the nine areas, shuffled per room; walking into a stone slides along it."""
-    from unitysim.envs.pyramids import CELL, HALF, SWITCH
+    pyramids in the nine spawn areas, shuffled per area; walking into a stone or a wall
+    slides along it."""
+    from unitysim.envs.arena import FAR
+    from unitysim.envs.pyramids import RADIUS, SIZES, SPAWN, STONES, SWITCH
 
     env = make("Pyramids")
     output = env.reset()
 
     def area(points: np.ndarray) -> np.ndarray:
-        cell = np.floor((points + np.asarray(HALF)) / CELL).astype(int)
+        cell = np.clip(np.floor(points / SPAWN + 1.5), 0, 2).astype(int)
         return cell[..., 0] + 3 * cell[..., 1]
 
     taken = np.column_stack([area(env.pos), area(env.objects[:, [SWITCH, *range(2, 8)]])])
     taken = np.column_stack([taken, env.pyramid_area])
-    assert (np.sort(taken, axis=1) == np.arange(9)).all()  # each area once in every room
-    assert len({tuple(row) for row in taken}) > 1  # shuffled per room
-    stone = env.objects[0, 2].copy()
-    env.pos[0], env.heading[0] = stone - (2.0, 0.3), 0.0  # west of it, facing east
-    actions = idle(env, output)
-    actions["Pyramids?team=0"].discrete[0, 0] = 1  # forward
-    for _ in range(10):
-        output = env.step(actions)
-    assert env.pos[0, 0] == pytest.approx(stone[0] - 0.9 - 0.5)  # against its west side
+    assert (np.sort(taken, axis=1) == np.arange(9)).all()  # each area once, every time
+    assert len({tuple(row) for row in taken}) > 1  # shuffled per area
+    forward = idle(env, output)
+    forward["Pyramids?team=0"].discrete[:2, 0] = 1
+    env.objects[:2] = FAR  # nothing else in the way: one stone, in the middle room
+    stone, reach = np.array([0.0, 0.0]), SIZES[STONES][0, 0] + RADIUS
+    env.objects[0, 2] = stone
+    env.pos[0], env.heading[0] = stone - (reach + 2.0, 0.3), 0.0  # west of it, facing east
+    env.pos[1], env.heading[1] = (12.0, 5.0), np.pi / 2  # below the wall on y = 16.5
+    for _ in range(6):
+        output = env.step(forward)
+    assert env.pos[0, 0] == pytest.approx(stone[0] - reach)  # against the stone's west side
     assert env.pos[0, 1] == pytest.approx(stone[1] - 0.3)
+    assert env.pos[1, 1] == pytest.approx(16.0 - RADIUS) and env.velocity[1, 1] == 0.0
 
 
 def test_dungeon_escape_kill_key_door():

@@ -1,44 +1,71 @@
 """Pyramids: press the switch, then topple the pyramid that appears (ML-Agents example).
 
-Sixteen rooms, one agent each (ids 0..15, no groups), spec-faithful to the dump. A room
-(24 x 24) is split into nine spawn areas of 8 x 8, as ``PyramidArea``'s. At every episode
-begin they are shuffled, as ``PyramidAgent.OnEpisodeBegin`` does: the agent goes to a
-random spot of the first (1 from its edges), the switch to the second, the third is where
-the pyramid will rise, and each of the other six gets a stone pyramid. Stone pyramids are
-obstacles: they stop the agent and block its rays. Touching the switch turns it on and
-raises the gold pyramid in its area; touching that pyramid knocks it over and reaches the
-gold: the reward is set to +2 and the episode ends. Every step costs -1 / MaxStep (MaxStep
-2500, interrupted), so the return is about 2 - time for a solved room and -1 for an
-unsolved one. Random play solves none of 60 episodes; the scripted expert 88 of 100.
+Sixteen areas, one agent each (ids 0..15, no groups), spec-faithful to the dump and laid
+out as ML-Agents' ``AreaPB`` prefab: a 99 x 99 floor split into a 3 x 3 grid of rooms
+about 32 wide by interior walls (four cruciform walls and eight side walls) with openings
+of about 11 and 18 between rooms; in each room a spawn area of 25 x 25. At every episode
+begin the nine spawn areas are shuffled, as ``PyramidAgent.OnEpisodeBegin`` does: the
+agent goes to a random spot of the first, the switch to the second, the third is where the
+pyramid will rise, and each of the other six gets a stone pyramid. Walls and stone
+pyramids stop the agent and block its rays. Touching the switch turns it on and raises the
+gold pyramid in its area; touching that pyramid knocks it over and reaches the gold: the
+reward is set to +2 and the episode ends. Every step costs -1 / MaxStep (MaxStep 5000,
+interrupted), so the return is about 2 - time for a solved area and -1 for an unsolved
+one.
+
+Movement as the prefab's rigid body: forward or back adds a velocity change of 2 per
+physics step, drag 2 takes it down (about 45 per second at most), a turn is 4 degrees
+per step. Simplified: the pyramid is reached by touching it (the real one falls and its
+gold brick must then be touched), stones do not topple, the switch does not block.
 
 Sensors as in the dump: three RayPerceptionSensors of 7 rays with 6 tags (block, wall,
-goal, switch off, switch on, stone): ahead over ±70°, behind over ±70°, and a longer,
+goal, switch off, switch on, stone), 35 long: ahead over ±70°, behind over ±70°, and a
 higher fan over ±45° that sees the gold on top of the pyramid (goal; the rays below see its
-bricks, block); and a vector of 4: switch state, then the agent's (commanded) velocity in
-its own frame (right, up, forward). Actions: one branch of 5 (none, forward, back, turn
-right, turn left); nothing masked.
+bricks, block); and a vector of 4: switch state, then the agent's velocity in its own
+frame (right, up, forward). Actions: one branch of 5 (none, forward, back, turn right,
+turn left); nothing masked.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import DT, FAR, MOVES, ArenaEnv, drive, limits, overlaps, steer
+from unitysim.envs.arena import DT, FAR, MOVES, ArenaEnv, limits, overlaps
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
 from unitysim.envs.perception import Rays, perceive
 
-HALF = (12.0, 12.0)
-CELL = 2.0 * HALF[0] / 3  # the nine spawn areas: 3 x 3 squares of this side
+HALF = (49.5, 49.5)
+SPAWN = 30.0  # spawn areas' centres: -30, 0, 30 on each axis
+SPAWN_REACH = 25.0 / 2.1  # PlaceObject: within scale / 2.1 of the centre
 RADIUS = 0.5
-SPEED = 3.0
+PUSH, DRAG, TURN = 2.0, 2.0, np.radians(200.0)  # velocity change per step, drag, turn per s
 LIMITS = limits(HALF, RADIUS)
-MAX_STEP = 2500
+MAX_STEP = 5000
 BLOCK, WALL, GOAL, SWITCH_OFF, SWITCH_ON, STONE = range(6)
-SENSORS = (Rays(3, 70.0, 20.0, 6), Rays(3, 70.0, 20.0, 6, backward=True), Rays(3, 45.0, 30.0, 6))
-# ray objects of a room: the switch, the gold pyramid, six stone pyramids
+RAY = 35.0
+SENSORS = (Rays(3, 70.0, RAY, 6), Rays(3, 70.0, RAY, 6, backward=True), Rays(3, 45.0, RAY, 6))
+# ray objects of an area: the switch, the gold pyramid, six stone pyramids
 SWITCH, PYRAMID, STONES = 0, 1, slice(2, 8)
-SIZES = np.array([[0.4, 0.4]] + [[0.9, 0.9]] * 7)
-LOW = np.array([SWITCH_OFF, BLOCK, *[STONE] * 6, WALL])  # ray tags per object, then the edge
+SIZES = np.array([[2.0, 2.0]] + [[2.25, 2.25]] * 7)
+
+
+def _walls() -> tuple[np.ndarray, np.ndarray]:
+    """The interior walls (lo, hi), 1 thick, on the lines x = ±16.5 and y = ±16.5: on
+    each line a side wall from the outer wall to 35 at both ends and a cruciform wall's
+    arm over 9..24 on both sides, leaving openings over 24..35 and -9..9."""
+    segments = [(35.0, HALF[0]), (9.0, 24.0), (-24.0, -9.0), (-HALF[0], -35.0)]
+    boxes = []
+    for line in (-16.5, 16.5):
+        for a, b in segments:
+            boxes.append(((a, line - 0.5), (b, line + 0.5)))  # along x
+            boxes.append(((line - 0.5, a), (line + 0.5, b)))  # along y
+    lo, hi = (np.array(side) for side in zip(*boxes, strict=True))
+    return lo, hi
+
+
+WALLS_LO, WALLS_HI = _walls()
+WALL_CENTRES, WALL_HALVES = (WALLS_LO + WALLS_HI) / 2, (WALLS_HI - WALLS_LO) / 2
+LOW = np.array([SWITCH_OFF, BLOCK, *[STONE] * 6, *[WALL] * len(WALLS_LO), WALL])  # then the edge
 
 
 class Pyramids(ArenaEnv):
@@ -62,14 +89,17 @@ class Pyramids(ArenaEnv):
         self.objects = np.zeros((self.n, len(SIZES), 2))  # centres; the pyramid FAR until raised
         self.switched = np.zeros(self.n, dtype=bool)
         self.pyramid_area = np.zeros(self.n, dtype=np.intp)  # where it rises when switched
+        self.velocity = np.zeros((self.n, 2))  # world frame, per second
+        self.push = np.zeros(self.n)  # the stored action: +1 forward, -1 back, 0 none
 
     def _begin(self, which: np.ndarray) -> None:
         k = int(which.sum())
-        areas = self.rng.permuted(np.tile(np.arange(9), (k, 1)), axis=1)  # a shuffle per room
+        areas = self.rng.permuted(np.tile(np.arange(9), (k, 1)), axis=1)  # a shuffle per area
         spots = self._spot_in(areas.ravel()).reshape(k, 9, 2)
         self.pos[which] = spots[:, 0]
         self.heading[which] = self.rng.uniform(-np.pi, np.pi, k)
-        self.motion[which] = 0.0
+        self.velocity[which] = 0.0
+        self.push[which] = 0.0
         self.turn[which] = 0.0
         objects = np.full((k, len(SIZES), 2), FAR)
         objects[:, SWITCH] = spots[:, 1]
@@ -79,18 +109,21 @@ class Pyramids(ArenaEnv):
         self.switched[which] = False
 
     def _spot_in(self, areas: np.ndarray) -> np.ndarray:
-        """A random point in each spawn area, 1 from its edge (objects of neighbouring areas
-        never overlap, nor an agent and a stone)."""
-        corner = np.column_stack([areas % 3, areas // 3]) * CELL - np.asarray(HALF)
-        return corner + CELL / 2 + self.rng.uniform(-1.0, 1.0, (len(areas), 2)) * (CELL / 2 - 1)
+        """A random point in each spawn area, as ``PyramidArea.PlaceObject`` picks it."""
+        centre = (np.column_stack([areas % 3, areas // 3]) - 1) * SPAWN
+        return centre + self.rng.uniform(-SPAWN_REACH, SPAWN_REACH, (len(areas), 2))
 
     def _act(self, rows: np.ndarray, actions: Actions) -> None:
         c = MOVES[np.clip(actions.discrete[:, 0], 0, 4)]
-        self.motion[rows], self.turn[rows] = steer(c[:, 0], c[:, 1], c[:, 2], SPEED, np.pi)
+        self.push[rows], self.turn[rows] = c[:, 0], c[:, 2] * TURN * DT
 
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
-        drive(self.pos, self.heading, self.motion, self.turn, *LIMITS)
-        self._stop_at_stones()
+        self.heading += self.turn
+        facing = np.column_stack([np.cos(self.heading), np.sin(self.heading)])
+        self.velocity += PUSH * self.push[:, None] * facing
+        self.velocity /= 1.0 + DRAG * DT  # the rigid body's linear drag
+        self.pos += self.velocity * DT
+        self._collide()
         self.reward -= 1.0 / MAX_STEP
         touched = overlaps(
             self.pos, RADIUS, self.objects[:, :2] - SIZES[:2], self.objects[:, :2] + SIZES[:2]
@@ -105,30 +138,40 @@ class Pyramids(ArenaEnv):
         interrupted = ~done & (self.episode_steps >= MAX_STEP)
         return done | interrupted, interrupted
 
-    def _stop_at_stones(self) -> None:
-        """An agent that walked into a stone pyramid is put back out of it along the axis it
-        went in least (it slides along the stone's side)."""
-        stones = self.objects[:, STONES]
-        gap = np.abs(self.pos[:, None, :] - stones) - (SIZES[STONES] + RADIUS)  # (n, 6, 2)
+    def _collide(self) -> None:
+        """An agent that went into a wall, a stone pyramid or the edge is put back out
+        along the axis it went in least, and loses its velocity along that axis (it
+        slides along the side)."""
+        low, high = LIMITS
+        outside = (self.pos < low) | (self.pos > high)
+        self.velocity[outside] = 0.0
+        np.clip(self.pos, low, high, out=self.pos)
+        walls = np.broadcast_to(WALL_CENTRES, (self.n, *WALL_CENTRES.shape))
+        centres = np.concatenate([self.objects[:, STONES], walls], axis=1)
+        halves = np.concatenate([SIZES[STONES], WALL_HALVES])
+        gap = np.abs(self.pos[:, None, :] - centres) - (halves + RADIUS)  # (n, boxes, 2)
         inside = (gap < 0).all(axis=2)
         if not inside.any():
             return
         rows, which = np.nonzero(inside)
         axis = gap[rows, which].argmax(axis=1)  # the shallower way out
-        side = np.sign(self.pos[rows, axis] - stones[rows, which, axis])
+        side = np.sign(self.pos[rows, axis] - centres[rows, which, axis])
         self.pos[rows, axis] -= side * gap[rows, which, axis]
+        self.velocity[rows, axis] = 0.0
 
     def _observe(self, behavior: int, rows: np.ndarray) -> list[np.ndarray]:
         centers = self.objects[rows]
-        lo, hi = centers - SIZES, centers + SIZES
+        k = len(rows)
+        lo = np.concatenate([centers - SIZES, np.broadcast_to(WALLS_LO, (k, *WALLS_LO.shape))], 1)
+        hi = np.concatenate([centers + SIZES, np.broadcast_to(WALLS_HI, (k, *WALLS_HI.shape))], 1)
         pos, heading = self.pos[rows], self.heading[rows]
-        low = np.tile(LOW, (len(rows), 1))
+        low = np.tile(LOW, (k, 1))
         low[:, SWITCH] = np.where(self.switched[rows], SWITCH_ON, SWITCH_OFF)
         high = low.copy()
         high[:, PYRAMID] = GOAL  # the gold on top of the pyramid
         ahead, behind, above = perceive(SENSORS, pos, heading, lo, hi, HALF, (low, low, high))
-        velocity = self.motion[rows] / DT  # as commanded, in the agent's frame
-        vector = np.column_stack(
-            [self.switched[rows], -velocity.imag, np.zeros(len(rows)), velocity.real]
-        )
+        cos, sin = np.cos(heading), np.sin(heading)
+        vx, vy = self.velocity[rows, 0], self.velocity[rows, 1]
+        forward, left = vx * cos + vy * sin, -vx * sin + vy * cos
+        vector = np.column_stack([self.switched[rows], -left, np.zeros(k), forward])
         return [ahead, behind, above, vector]
