@@ -169,7 +169,12 @@ def _fit(planned: TunePlan) -> TuneResult:
         run_config=tune.RunConfig(
             name="tune",
             storage_path=str(planned.root),
-            checkpoint_config=tune.CheckpointConfig(num_to_keep=2),
+            # PBT exploits a better trial's checkpoint from that trial's last perturbation;
+            # by then it may have saved two more, and a deleted one fails the exploiting
+            # trial (seen on a loaded machine): under PBT every checkpoint is kept
+            checkpoint_config=tune.CheckpointConfig(
+                num_to_keep=None if tuning.scheduler == "pbt" else 2
+            ),
             verbose=1,
         ),
     )
