@@ -229,7 +229,8 @@ def mlagents(case: Path, anchor: Path) -> float:
 def train_in_order(update: Any, optimizer: Any, h: Any) -> None:
     """ML-Agents' ``_update_policy`` on its update buffer: the whole-buffer advantage
     normalization, then ``num_epoch`` passes of its optimizer's ``update`` over the
-    minibatches, in order (its trainer shuffles here; ours is told not to either)."""
+    minibatches, in order (its trainer shuffles here; ours is told not to either), each
+    also training the reward signals' networks."""
     from mlagents.trainers.buffer import BufferKey
 
     advantages = np.array(update[BufferKey.ADVANTAGES].get_batch(), dtype=np.float32)
@@ -238,7 +239,9 @@ def train_in_order(update: Any, optimizer: Any, h: Any) -> None:
     n = update.num_experiences
     for _ in range(h.num_epoch):
         for start in range(0, (n // h.batch_size) * h.batch_size, h.batch_size):
-            optimizer.update(update.make_mini_batch(start, start + h.batch_size), h.batch_size)
+            minibatch = update.make_mini_batch(start, start + h.batch_size)
+            optimizer.update(minibatch, h.batch_size)
+            optimizer.update_reward_signals(minibatch)  # curiosity's, rnd's ...
 
 
 def main(
@@ -272,7 +275,7 @@ def main(
             case = Path(work) / f"case-{seed}.npz"
             me = [sys.executable, script, "--case", str(case), "--anchor", str(args.anchor)]
             subprocess.run([*me, "--side", "ours", "--seeds", str(seed)], check=True, cwd=ROOT)
-            print(f"seed {seed}: weights after one update, ML-Agents' code against ours")
+            print(f"seed {seed}: weights after the update, ML-Agents' code against ours")
             theirs = [str(args.anchor / "venv/bin/python"), *me[1:], "--side", "mlagents"]
             env = {**os.environ, "PYTHONPATH": str(args.anchor / "shim")}
             if subprocess.run(theirs, env=env, cwd=ROOT).returncode != 0:

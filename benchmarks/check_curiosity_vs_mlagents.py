@@ -1,0 +1,227 @@
+"""Two PPO updates with curiosity, ours and mlagents-learn 1.1.0's own code, on the same
+buffers and weights.
+
+ML-Agents' ``ppo/Pyramids.yaml`` (curiosity: strength 0.02, gamma 0.99, 256 units) on a
+small discrete behavior (one-hot observations, 3 moves), so that every part of a
+curiosity update is compared exactly: the first update trains the curiosity module while
+its rewards are still 0; the second reads its rewards (the forward model's error, times
+its strength), gives them their own value head and GAE, sums the signals' advantages
+with the extrinsic one, and trains actor, critic, both value heads and the curiosity
+module again. Minibatches are taken in order on both sides. The weights after both
+updates must agree to float precision: policy, critic, value heads and every layer of
+the curiosity module.
+
+Runs as ``check_ppo_vs_mlagents.py`` does, ML-Agents' side in the anchor's venv:
+
+    .venv/bin/python benchmarks/check_curiosity_vs_mlagents.py --seeds 0 1 2
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from check_ppo_vs_mlagents import (
+    anchor_workarounds,
+    load_ours,
+    main,
+    train_in_order,
+    worst_difference,
+)
+
+CONFIG = Path(__file__).resolve().parent / "mlagents_configs" / "ppo_Pyramids.yaml"
+BEHAVIOR, OBS_SIZE, BRANCH, ROWS, UPDATES = "Pyramids", 20, 3, 17, 2
+# our parameter ("<module>:<name>") -> (ML-Agents' module, its parameter)
+ML_NAMES = {
+    "net:trunk.0": ("actor", "network_body._body_endoder.seq_layers.0"),
+    "net:trunk.2": ("actor", "network_body._body_endoder.seq_layers.2"),
+    "net:logits": ("actor", "action_model._discrete_distribution.branches.0"),
+    "net:critic_trunk.0": ("critic", "network_body._body_endoder.seq_layers.0"),
+    "net:critic_trunk.2": ("critic", "network_body._body_endoder.seq_layers.2"),
+    "net:value": ("critic", "value_heads.value_heads.extrinsic"),
+    "heads:0": ("critic", "value_heads.value_heads.curiosity"),
+    "cur:body.network.trunk.0": ("curiosity", "_state_encoder._body_endoder.seq_layers.0"),
+    "cur:body.network.trunk.2": ("curiosity", "_state_encoder._body_endoder.seq_layers.2"),
+    "cur:inverse.0": ("curiosity", "inverse_model_action_encoding.0.seq_layers.0"),
+    "cur:discrete_head": ("curiosity", "discrete_action_prediction"),
+    "cur:forward_model.0": ("curiosity", "forward_model_next_state_prediction.0.seq_layers.0"),
+    "cur:forward_model.2": ("curiosity", "forward_model_next_state_prediction.1"),
+}
+
+
+def buffers(seed: int, horizon: int) -> dict[str, np.ndarray]:
+    """``UPDATES`` buffers of ``ROWS`` rows of ``horizon`` steps: one-hot observations that
+    follow the action (a walk on a ring, so that curiosity has something to learn), -0.01
+    a step, 30 % of rows end their episode with +1 (terminated), the others are cut."""
+    rng = np.random.default_rng(seed)
+    shape = (UPDATES, ROWS, horizon)
+    action = rng.integers(0, BRANCH, shape)
+    position = np.zeros((UPDATES, ROWS, horizon + 1), np.int64)
+    position[..., 0] = rng.integers(0, OBS_SIZE, (UPDATES, ROWS))
+    for t in range(horizon):
+        position[..., t + 1] = (position[..., t] + action[..., t] - 1) % OBS_SIZE
+    reward = np.full(shape, -0.01, np.float32)
+    ends = rng.random((UPDATES, ROWS)) < 0.3
+    reward[..., -1] += np.where(ends, 1.0, 0.0)
+    return {
+        "obs": np.eye(OBS_SIZE, dtype=np.float32)[position],
+        "reward": reward,
+        "action": action,
+        "ends": ends,
+    }
+
+
+def ours(seed: int, out: Path) -> None:
+    import torch
+    from mlagents_envs.base_env import (
+        ActionSpec,
+        BehaviorSpec,
+        DimensionProperty,
+        ObservationSpec,
+        ObservationType,
+    )
+
+    from batches import keys
+    from batches.specs import spec_to_dict, step_spec
+    from learners.config import load_config
+    from learners.policies import ActorCritic
+    from learners.ppo import PPO
+
+    settings = load_config(CONFIG).for_behavior(BEHAVIOR)
+    horizon = settings.time_horizon
+    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
+    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    torch.manual_seed(seed)
+    network = ActorCritic(spec, settings.network_settings)
+    ppo = PPO(network, settings)
+    curiosity = ppo.signals.items[0]
+    modules = {"net": network, "heads": ppo.signals.heads, "cur": curiosity}
+
+    def weights(prefix: str) -> dict[str, np.ndarray]:
+        return {
+            f"{prefix}/{m}:{k}": v.detach().clone().numpy()
+            for m, module in modules.items()
+            for k, v in module.state_dict().items()
+            if k != "updated"
+        }
+
+    initial = weights("initial")
+    data = buffers(seed, horizon)
+    n = ROWS * horizon
+    last = np.zeros((ROWS, horizon), bool)
+    last[:, -1] = True
+    log_probs = []
+    in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
+    for u in range(UPDATES):
+        terminated = last & data["ends"][u][:, None]
+        obs = data["obs"][u]
+        steps = step_spec(spec).expand(n).zero()
+        steps[keys.OBS, "v"] = torch.from_numpy(obs[:, :-1].reshape(n, OBS_SIZE))
+        steps[keys.NEXT, keys.OBS, "v"] = torch.from_numpy(obs[:, 1:].reshape(n, OBS_SIZE))
+        steps[keys.NEXT, keys.REWARD] = torch.from_numpy(data["reward"][u].reshape(n, 1))
+        steps[keys.NEXT, keys.DONE] = torch.from_numpy(last.reshape(n, 1))
+        steps[keys.NEXT, keys.TERMINATED] = torch.from_numpy(terminated.reshape(n, 1))
+        steps[keys.NEXT, keys.TRUNCATED] = torch.from_numpy((last & ~terminated).reshape(n, 1))
+        steps[keys.ACTION, keys.DISCRETE] = torch.from_numpy(data["action"][u].reshape(n, 1))
+        steps[keys.ACTION_MASK] = torch.ones(n, BRANCH, dtype=torch.bool)
+        steps[keys.POLICY_VERSION] = torch.full((n,), u, dtype=torch.int64)
+        with torch.no_grad():  # the acting policy's log-probabilities: the weights of now
+            log_prob, _, _ = network.evaluate(
+                {"v": steps[keys.OBS, "v"]}, None, steps[keys.ACTION, keys.DISCRETE]
+            )
+        log_probs.append(log_prob.numpy().reshape(ROWS, horizon))
+        steps[keys.LOG_PROB] = log_prob
+        steps.set_non_tensor(keys.BEHAVIOR, f"{BEHAVIOR}?team=0")
+        steps.set_non_tensor(keys.SPEC, spec_to_dict(spec))
+        ppo.add(steps, torch.full((n,), u, dtype=torch.int64))
+        assert ppo.ready()
+        shuffle, torch.randperm = torch.randperm, in_order  # in order, as ML's side below
+        try:
+            report = ppo.update(0.0)
+        finally:
+            torch.randperm = shuffle
+        print(f"  ours, update {u}: curiosity reward {report['Policy/Curiosity Reward']:.2e}")
+    after = weights("after")
+    np.savez(out, horizon=horizon, log_prob=np.stack(log_probs), **data, **initial, **after)
+
+
+def mlagents(case: Path, anchor: Path) -> float:
+    """ML-Agents' PPO trainer, optimizer and curiosity provider on the case's buffers, as
+    its trainer's ``_process_trajectory`` and ``_update_policy`` run them; returns the
+    worst difference from our weights, relative to how far the updates moved them."""
+    anchor_workarounds(anchor)
+    import yaml
+    from mlagents.plugins.trainer_type import register_trainer_plugins
+    from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
+    from mlagents.trainers.policy.torch_policy import TorchPolicy
+    from mlagents.trainers.ppo.optimizer_torch import TorchPPOOptimizer
+    from mlagents.trainers.settings import RunOptions
+    from mlagents.trainers.torch_entities.networks import SimpleActor
+    from mlagents.trainers.trainer.trainer_utils import get_gae
+    from mlagents.trainers.trajectory import ObsUtil
+    from mlagents_envs.base_env import (
+        ActionSpec,
+        BehaviorSpec,
+        DimensionProperty,
+        ObservationSpec,
+        ObservationType,
+    )
+
+    register_trainer_plugins()
+    d = np.load(case)
+    settings = RunOptions.from_dict(yaml.safe_load(CONFIG.read_text())).behaviors[BEHAVIOR]
+    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
+    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
+    policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
+    optimizer = TorchPPOOptimizer(policy, settings)
+    signals = optimizer.reward_signals
+    modules = {
+        "actor": policy.actor,
+        "critic": optimizer.critic,
+        "curiosity": signals["curiosity"]._network,
+    }
+    load_ours(modules, ML_NAMES, d)
+    obs_key, next_key = ObsUtil.get_name_at(0), ObsUtil.get_name_at_next(0)
+    horizon, h = int(d["horizon"]), settings.hyperparameters
+    for u in range(UPDATES):
+        update = AgentBuffer()
+        for row in range(ROWS):  # one trajectory per row, as its trainer's _process_trajectory
+            trajectory = AgentBuffer()
+            done = bool(d["ends"][u, row])
+            for t in range(horizon):
+                trajectory[obs_key].append(d["obs"][u, row, t])
+                trajectory[next_key].append(d["obs"][u, row, t + 1])
+                trajectory[BufferKey.ENVIRONMENT_REWARDS].append(d["reward"][u, row, t])
+                trajectory[BufferKey.DISCRETE_ACTION].append(np.array([d["action"][u, row, t]]))
+                trajectory[BufferKey.CONTINUOUS_ACTION].append(np.zeros(0, np.float32))
+                trajectory[BufferKey.DISCRETE_LOG_PROBS].append(d["log_prob"][u, row, t : t + 1])
+                trajectory[BufferKey.CONTINUOUS_LOG_PROBS].append(np.zeros(0, np.float32))
+                trajectory[BufferKey.ACTION_MASK].append(np.ones(BRANCH, np.float32))
+                trajectory[BufferKey.MASKS].append(1.0)
+                trajectory[BufferKey.DONE].append(done and t == horizon - 1)
+            values, value_next, _ = optimizer.get_trajectory_value_estimates(
+                trajectory, [d["obs"][u, row, horizon]], done
+            )
+            advantages = []
+            for name, signal in signals.items():
+                trajectory[RewardSignalUtil.value_estimates_key(name)].extend(values[name])
+                rewards = signal.evaluate(trajectory) * signal.strength
+                advantage = get_gae(
+                    rewards=rewards,
+                    value_estimates=values[name],
+                    value_next=value_next[name],
+                    gamma=signal.gamma,
+                    lambd=h.lambd,
+                )
+                trajectory[RewardSignalUtil.returns_key(name)].set(advantage + values[name])
+                trajectory[RewardSignalUtil.advantage_key(name)].set(advantage)
+                advantages.append(advantage)
+            trajectory[BufferKey.ADVANTAGES].set(list(np.mean(advantages, axis=0)))
+            trajectory.resequence_and_append(update, training_length=policy.sequence_length)
+        train_in_order(update, optimizer, h)
+    return worst_difference(modules, ML_NAMES, d)
+
+
+if __name__ == "__main__":
+    main(__file__, ours, mlagents, __doc__)
