@@ -117,8 +117,24 @@ def service_config(
         max_workers=options.max_workers,
         learner_cpus=options.learner_cpus,
         await_learner_weights=resume,
-        collect_ahead=options.collect_ahead,
+        collect_ahead=max(options.collect_ahead, threaded_ahead(config)),
         port_range=ports_from(options.base_port),
+    )
+
+
+def threaded_ahead(config: RunConfig) -> int:
+    """Steps workers may collect past an on-policy update's demand for the behaviors that
+    set ``threaded``: the largest of their buffers. ML-Agents' threaded trainer updates
+    while its environments step on with the old policy (its queue holds 20 trajectories);
+    the steps acted meanwhile train the next update, their lag corrected by PPO's ratio."""
+    given = [*config.behaviors.values(), *([config.default] if config.default_given else [])]
+    return max(
+        (
+            s.hyperparameters.buffer_size
+            for s in given
+            if s.threaded and trainer(s).waits_for_fresh_data
+        ),
+        default=0,
     )
 
 

@@ -5,12 +5,11 @@ the defaults of its trainer type, section by section. Everything is checked at l
 so a typo fails with one line naming the dotted key (and the key probably meant).
 
 - Errors (:class:`ConfigError`): unknown keys, bad types or ranges, another trainer's
-  hyperparameter, and ``trainer_type: poca`` (running another algorithm instead would
-  change the experiment silently).
-- Reported (``RunConfig.unsupported``, one ``logging.warning``): ML-Agents features we lack
-  (memory, curiosity/GAIL/RND, ``threaded``,
-  run-level ``env_settings`` ...); training goes on without them. Values that ask for
-  what we do anyway (``memory: null``, ``deterministic: false``, ...) are not reported.
+  hyperparameter.
+- Reported (``RunConfig.unsupported``, one ``logging.warning``): what a trainer type lacks
+  (``memory`` or an intrinsic signal under POCA or IMPALA) and an extrinsic
+  signal's ``network_settings`` (no network reads it); training goes on without them.
+  Values that ask for what we do anyway (``memory: null`` ...) are not reported.
   All five of ML-Agents' ``vis_encode_type`` values are implemented (``learners.encoders``).
   Environment parameters (numbers, samplers, curricula) are read by ``learners.config_parameters``.
 """
@@ -208,6 +207,9 @@ def _resolve(path: str, trainer_type: str, layers: list[_Layer]) -> TrainerSetti
         reward_signals=tuple(v for k, v in intrinsic.items() if k in signals),
         **top,
     )
+    if settings.even_checkpoints:  # as ML-Agents' TrainerSettings computes it
+        interval = max(1, int(settings.max_steps / settings.keep_checkpoints))
+        settings = replace(settings, checkpoint_interval=interval)
     h = settings.hyperparameters
     if trainer_type != "sac" and h.batch_size > h.buffer_size:
         raise ConfigError(

@@ -279,11 +279,10 @@ TOP: dict[str, Check] = {
     "summary_freq": POSITIVE_INT,
     "checkpoint_interval": POSITIVE_INT,
     "keep_checkpoints": POSITIVE_INT,
+    "even_checkpoints": _bool,  # checkpoint_interval: max_steps / keep_checkpoints
+    "threaded": _bool,  # workers collect through this behavior's updates (driver/system.py)
 }
-TOP_UNSUPPORTED: dict[str, object] = {
-    "threaded": False,  # workers wait for each update's weights, as unthreaded ML-Agents
-    "even_checkpoints": False,
-}
+TOP_UNSUPPORTED: dict[str, object] = {}
 SECTIONS = ("trainer_type", "hyperparameters", "network_settings", "reward_signals")
 EXTRINSIC: dict[str, Check] = {"gamma": float_in(0, 1, open_low=True), "strength": float_in(0)}
 REWARD_UNSUPPORTED: tuple[str, ...] = ()

@@ -130,6 +130,10 @@ class TrainerSettings:
     summary_freq: int = 50_000
     checkpoint_interval: int = 500_000
     keep_checkpoints: int = 5
+    even_checkpoints: bool = False  # checkpoint_interval is max_steps / keep_checkpoints
+    # on-policy: workers go on collecting through this behavior's updates, up to one
+    # buffer_size ahead, with the weights the update replaces (ML-Agents' trainer thread)
+    threaded: bool = False
     init_path: str | None = None  # a checkpoint (file or folder) this behavior starts from
     self_play: SelfPlaySettings | None = None  # None: no self-play
     behavioral_cloning: BehavioralCloningSettings | None = None

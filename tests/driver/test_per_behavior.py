@@ -12,7 +12,7 @@ import torch
 
 from driver.checkpoints import Checkpoints
 from learners import checkpoint
-from learners.config import parse_config
+from learners.config import ConfigError, parse_config
 
 TWO = {
     "behaviors": {
@@ -103,6 +103,30 @@ def test_the_service_cuts_each_behaviors_rows_at_its_own_time_horizon():
     assert settings.horizon(NAMES["Goalie"]) == 40 and settings.horizon("Other") == 64
 
 
+def test_a_threaded_behavior_lets_workers_collect_one_buffer_through_its_updates():
+    """ML-Agents' ``threaded``: its environments step on while the trainer updates. Here
+    the service's collect-ahead: the largest buffer of a threaded on-policy behavior, or
+    ``--collect-ahead`` if larger; off-policy trainers keep workers busy anyway."""
+    from driver.options import TrainOptions
+    from driver.system import service_config
+    from rollout.unity import UnityConfig
+
+    def ahead(behaviors: dict, collect_ahead: int = 0, default: dict | None = None) -> int:
+        raw = {"behaviors": behaviors} | ({"default_settings": default} if default else {})
+        options = TrainOptions(collect_ahead=collect_ahead)
+        return service_config(options, parse_config(raw), UnityConfig(None), False).collect_ahead
+
+    ppo = {"threaded": True, "hyperparameters": {"buffer_size": 4096, "batch_size": 256}}
+    poca = {"trainer_type": "poca", "threaded": True, "hyperparameters": {"buffer_size": 8000}}
+    sac = {"trainer_type": "sac", "threaded": True}
+    assert ahead({"A": ppo, "B": {}}) == 4096
+    assert ahead({"A": ppo, "B": poca}) == 8000
+    assert ahead({"A": ppo}, collect_ahead=10_000) == 10_000
+    assert ahead({"A": sac, "B": {}}) == 0
+    assert ahead({"A": {}}) == 0
+    assert ahead({"A": {}}, default={"threaded": True}) == 10_240  # ML-Agents' buffer_size
+
+
 def spec(*shapes: tuple[int, ...]) -> dict:
     observations = [{"name": f"sensor{i}", "shape": list(shape)} for i, shape in enumerate(shapes)]
     return {"observations": observations}
@@ -154,3 +178,22 @@ def test_cameras_without_graphics_are_a_warning(caplog):
         )
     (said,) = [r.getMessage() for r in caplog.records]
     assert said.startswith("Striker?team=0 observes images (sensor0) and the build runs without")
+
+
+def test_even_checkpoints_spread_them_over_max_steps_as_mlagents() -> None:
+    """ML-Agents' TrainerSettings: checkpoint_interval = max_steps / keep_checkpoints."""
+    config = parse_config(
+        {
+            "default_settings": {"even_checkpoints": True, "max_steps": 1_000_000},
+            "behaviors": {
+                "A": {"keep_checkpoints": 4, "checkpoint_interval": 7},
+                "B": {"even_checkpoints": False, "checkpoint_interval": 7},
+            },
+        }
+    )
+    assert config.for_behavior("A").checkpoint_interval == 250_000  # the interval given yields
+    assert config.for_behavior("B").checkpoint_interval == 7
+    assert config.default.checkpoint_interval == 200_000  # 5 kept by default
+    assert config.unsupported == ()
+    with pytest.raises(ConfigError, match=r"behaviors\.A\.even_checkpoints: expected true or"):
+        parse_config({"behaviors": {"A": {"even_checkpoints": "yes"}}})

@@ -163,7 +163,8 @@ def test_mlagents_sac_3dball() -> None:
     assert (h.tau, h.steps_per_update, h.init_entcoef) == (0.005, 10.0, 0.5)
     assert h.learning_rate_schedule == "constant"
     assert h.reward_signal_steps_per_update == 10.0  # no reward signal network to update
-    assert config.unsupported == ("behaviors.3DBall.threaded",)  # true: ours is false
+    assert ball.threaded  # workers collect through its updates (driver/system.py)
+    assert config.unsupported == ()
 
 
 def test_defaults_follow_mlagents() -> None:
@@ -312,7 +313,8 @@ def test_ml_agents_poca_configs_train_with_poca() -> None:
 def test_unsupported_keys_are_reported(caplog: pytest.LogCaptureFixture) -> None:
     text = """
 default_settings:
-  threaded: true
+  reward_signals:
+    extrinsic: {gamma: 0.99, network_settings: {hidden_units: 8}}
 behaviors:
   Pyramids:
     init_path: results/old
@@ -340,12 +342,13 @@ torch_settings: {device: cpu}
 """
     with caplog.at_level(logging.WARNING, logger="learners.config"):
         config = parse(text)
-    assert set(config.unsupported) == {"default_settings.threaded"}
+    extrinsic_network = "default_settings.reward_signals.extrinsic.network_settings"
+    assert set(config.unsupported) == {extrinsic_network}
     assert config.behaviors["Pyramids"].network_settings.memory is not None
     assert len(config.unsupported) == len(set(config.unsupported))
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1
-    assert "default_settings.threaded" in warnings[0].getMessage()
+    assert extrinsic_network in warnings[0].getMessage()
     values = {k: v[0].value for k, v in config.environment_parameters.items()}  # one lesson
     assert values == {"mass": Constant(1.5), "scale": Constant(1.0), "wall": Constant(1.0)} | {
         "gravity": Uniform(7.0, 12.0, UNSEEDED)  # the driver seeds it from the run's seed
