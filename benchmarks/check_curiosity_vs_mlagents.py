@@ -25,7 +25,9 @@ from check_ppo_vs_mlagents import (
     anchor_workarounds,
     load_ours,
     main,
+    packed_steps,
     train_in_order,
+    vector_spec,
     worst_difference,
 )
 
@@ -73,24 +75,14 @@ def buffers(seed: int, horizon: int) -> dict[str, np.ndarray]:
 
 def ours(seed: int, out: Path) -> None:
     import torch
-    from mlagents_envs.base_env import (
-        ActionSpec,
-        BehaviorSpec,
-        DimensionProperty,
-        ObservationSpec,
-        ObservationType,
-    )
 
-    from batches import keys
-    from batches.specs import spec_to_dict, step_spec
     from learners.config import load_config
     from learners.policies import ActorCritic
     from learners.ppo import PPO
 
     settings = load_config(CONFIG).for_behavior(BEHAVIOR)
     horizon = settings.time_horizon
-    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
-    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    spec = vector_spec(OBS_SIZE, BRANCH)
     torch.manual_seed(seed)
     network = ActorCritic(spec, settings.network_settings)
     ppo = PPO(network, settings)
@@ -107,33 +99,15 @@ def ours(seed: int, out: Path) -> None:
 
     initial = weights("initial")
     data = buffers(seed, horizon)
-    n = ROWS * horizon
-    last = np.zeros((ROWS, horizon), bool)
-    last[:, -1] = True
     log_probs = []
     in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
     for u in range(UPDATES):
-        terminated = last & data["ends"][u][:, None]
-        obs = data["obs"][u]
-        steps = step_spec(spec).expand(n).zero()
-        steps[keys.OBS, "v"] = torch.from_numpy(obs[:, :-1].reshape(n, OBS_SIZE))
-        steps[keys.NEXT, keys.OBS, "v"] = torch.from_numpy(obs[:, 1:].reshape(n, OBS_SIZE))
-        steps[keys.NEXT, keys.REWARD] = torch.from_numpy(data["reward"][u].reshape(n, 1))
-        steps[keys.NEXT, keys.DONE] = torch.from_numpy(last.reshape(n, 1))
-        steps[keys.NEXT, keys.TERMINATED] = torch.from_numpy(terminated.reshape(n, 1))
-        steps[keys.NEXT, keys.TRUNCATED] = torch.from_numpy((last & ~terminated).reshape(n, 1))
-        steps[keys.ACTION, keys.DISCRETE] = torch.from_numpy(data["action"][u].reshape(n, 1))
-        steps[keys.ACTION_MASK] = torch.ones(n, BRANCH, dtype=torch.bool)
-        steps[keys.POLICY_VERSION] = torch.full((n,), u, dtype=torch.int64)
-        with torch.no_grad():  # the acting policy's log-probabilities: the weights of now
-            log_prob, _, _ = network.evaluate(
-                {"v": steps[keys.OBS, "v"]}, None, steps[keys.ACTION, keys.DISCRETE]
-            )
+        rows = {k: v[u] for k, v in data.items()}
+        steps, log_prob = packed_steps(
+            spec, rows, network, u, BEHAVIOR
+        )  # acted by the weights of now
         log_probs.append(log_prob.numpy().reshape(ROWS, horizon))
-        steps[keys.LOG_PROB] = log_prob
-        steps.set_non_tensor(keys.BEHAVIOR, f"{BEHAVIOR}?team=0")
-        steps.set_non_tensor(keys.SPEC, spec_to_dict(spec))
-        ppo.add(steps, torch.full((n,), u, dtype=torch.int64))
+        ppo.add(steps, torch.full((ROWS * horizon,), u, dtype=torch.int64))
         assert ppo.ready()
         shuffle, torch.randperm = torch.randperm, in_order  # in order, as ML's side below
         try:
@@ -159,19 +133,11 @@ def mlagents(case: Path, anchor: Path) -> float:
     from mlagents.trainers.torch_entities.networks import SimpleActor
     from mlagents.trainers.trainer.trainer_utils import get_gae
     from mlagents.trainers.trajectory import ObsUtil
-    from mlagents_envs.base_env import (
-        ActionSpec,
-        BehaviorSpec,
-        DimensionProperty,
-        ObservationSpec,
-        ObservationType,
-    )
 
     register_trainer_plugins()
     d = np.load(case)
     settings = RunOptions.from_dict(yaml.safe_load(CONFIG.read_text())).behaviors[BEHAVIOR]
-    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
-    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    spec = vector_spec(OBS_SIZE, BRANCH)
     actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
     policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
     optimizer = TorchPPOOptimizer(policy, settings)

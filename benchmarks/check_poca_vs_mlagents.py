@@ -26,6 +26,7 @@ from check_ppo_vs_mlagents import (
     load_ours,
     main,
     train_in_order,
+    vector_spec,
     worst_difference,
 )
 
@@ -104,13 +105,6 @@ def case(seed: int) -> dict[str, np.ndarray]:
 
 def ours(seed: int, out: Path) -> None:
     import torch
-    from mlagents_envs.base_env import (
-        ActionSpec,
-        BehaviorSpec,
-        DimensionProperty,
-        ObservationSpec,
-        ObservationType,
-    )
 
     from batches import keys
     from batches.specs import spec_to_dict, step_spec
@@ -119,8 +113,7 @@ def ours(seed: int, out: Path) -> None:
     from learners.policies import ActorCritic
 
     settings = parse_config(CONFIG).for_behavior(BEHAVIOR)
-    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
-    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    spec = vector_spec(OBS_SIZE, BRANCH)
     torch.manual_seed(seed)
     network = ActorCritic(spec, settings.network_settings)
     poca = POCA(network, settings)
@@ -202,20 +195,12 @@ def mlagents(case_file: Path, anchor: Path) -> float:
     from mlagents.trainers.torch_entities.networks import SimpleActor
     from mlagents.trainers.trainer.trainer_utils import lambda_return
     from mlagents.trainers.trajectory import AgentExperience, AgentStatus, Trajectory
-    from mlagents_envs.base_env import (
-        ActionSpec,
-        ActionTuple,
-        BehaviorSpec,
-        DimensionProperty,
-        ObservationSpec,
-        ObservationType,
-    )
+    from mlagents_envs.base_env import ActionTuple
 
     register_trainer_plugins()
     d = np.load(case_file)
     settings = RunOptions.from_dict(yaml.safe_load(yaml.safe_dump(CONFIG))).behaviors[BEHAVIOR]
-    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
-    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    spec = vector_spec(OBS_SIZE, BRANCH)
     actor = {"conditional_sigma": False, "tanh_squash": False}  # as its POCA trainer
     policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
     optimizer = TorchPOCAOptimizer(policy, settings)

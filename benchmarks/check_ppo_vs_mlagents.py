@@ -57,8 +57,8 @@ def buffer(seed: int, horizon: int) -> dict[str, np.ndarray]:
     }
 
 
-def ours(seed: int, out: Path) -> None:
-    import torch
+def vector_spec(obs_size: int, branch: int) -> Any:
+    """A behavior of one vector sensor ``"v"`` and one discrete branch (both venvs)."""
     from mlagents_envs.base_env import (
         ActionSpec,
         BehaviorSpec,
@@ -67,42 +67,63 @@ def ours(seed: int, out: Path) -> None:
         ObservationType,
     )
 
+    sensor = ObservationSpec((obs_size,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
+    return BehaviorSpec([sensor], ActionSpec(0, (branch,)))
+
+
+def packed_steps(
+    spec: Any, data: dict[str, np.ndarray], network: Any, version: int = 0, behavior: str = BEHAVIOR
+) -> tuple[Any, Any]:
+    """Our packed steps of ``data``'s rows (``obs`` one longer than each row: the last is
+    what follows it), each row ending at its last step, terminated where ``ends``, acted
+    by ``network`` (its log-probabilities, also returned) at ``version``."""
+    import torch
+
     from batches import keys
     from batches.specs import log_prob_size, spec_to_dict, step_spec
+
+    rows, horizon = data["reward"].shape
+    size, branch, n = data["obs"].shape[-1], spec.action_spec.discrete_branches[0], rows * horizon
+    last = np.zeros((rows, horizon), bool)
+    last[:, -1] = True
+    terminated = last & data["ends"][:, None]
+    steps = step_spec(spec).expand(n).zero()
+    steps[keys.OBS, "v"] = torch.from_numpy(data["obs"][:, :-1].reshape(n, size))
+    steps[keys.NEXT, keys.OBS, "v"] = torch.from_numpy(data["obs"][:, 1:].reshape(n, size))
+    steps[keys.NEXT, keys.REWARD] = torch.from_numpy(data["reward"].reshape(n, 1))
+    steps[keys.NEXT, keys.DONE] = torch.from_numpy(last.reshape(n, 1))
+    steps[keys.NEXT, keys.TERMINATED] = torch.from_numpy(terminated.reshape(n, 1))
+    steps[keys.NEXT, keys.TRUNCATED] = torch.from_numpy((last & ~terminated).reshape(n, 1))
+    steps[keys.ACTION, keys.DISCRETE] = torch.from_numpy(data["action"].reshape(n, 1))
+    steps[keys.ACTION_MASK] = torch.ones(n, branch, dtype=torch.bool)
+    steps[keys.POLICY_VERSION] = torch.full((n,), version, dtype=torch.int64)
+    with torch.no_grad():
+        log_prob, _, _ = network.evaluate(
+            {"v": steps[keys.OBS, "v"]}, None, steps[keys.ACTION, keys.DISCRETE]
+        )
+    assert log_prob.shape[-1] == log_prob_size(spec)
+    steps[keys.LOG_PROB] = log_prob
+    steps.set_non_tensor(keys.BEHAVIOR, f"{behavior}?team=0")
+    steps.set_non_tensor(keys.SPEC, spec_to_dict(spec))
+    return steps, log_prob
+
+
+def ours(seed: int, out: Path) -> None:
+    import torch
+
     from learners.config import load_config
     from learners.policies import ActorCritic
     from learners.ppo import PPO
 
     settings = load_config(CONFIG).for_behavior(BEHAVIOR)
     horizon = settings.time_horizon
-    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
-    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    spec = vector_spec(OBS_SIZE, BRANCH)
     torch.manual_seed(seed)
     network = ActorCritic(spec, settings.network_settings)
     initial = {k: v.detach().clone().numpy() for k, v in network.state_dict().items()}
     data = buffer(seed, horizon)
     n = ROWS * horizon
-    last = np.zeros((ROWS, horizon), bool)
-    last[:, -1] = True
-    terminated = last & data["ends"][:, None]
-    steps = step_spec(spec).expand(n).zero()
-    steps[keys.OBS, "v"] = torch.from_numpy(data["obs"][:, :-1].reshape(n, OBS_SIZE))
-    steps[keys.NEXT, keys.OBS, "v"] = torch.from_numpy(data["obs"][:, 1:].reshape(n, OBS_SIZE))
-    steps[keys.NEXT, keys.REWARD] = torch.from_numpy(data["reward"].reshape(n, 1))
-    steps[keys.NEXT, keys.DONE] = torch.from_numpy(last.reshape(n, 1))
-    steps[keys.NEXT, keys.TERMINATED] = torch.from_numpy(terminated.reshape(n, 1))
-    steps[keys.NEXT, keys.TRUNCATED] = torch.from_numpy((last & ~terminated).reshape(n, 1))
-    steps[keys.ACTION, keys.DISCRETE] = torch.from_numpy(data["action"].reshape(n, 1))
-    steps[keys.ACTION_MASK] = torch.ones(n, BRANCH, dtype=torch.bool)
-    steps[keys.POLICY_VERSION] = torch.zeros(n, dtype=torch.int64)
-    with torch.no_grad():  # the acting policy's log-probabilities: the initial weights'
-        log_prob, _, _ = network.evaluate(
-            {"v": steps[keys.OBS, "v"]}, None, steps[keys.ACTION, keys.DISCRETE]
-        )
-    assert log_prob.shape[-1] == log_prob_size(spec)
-    steps[keys.LOG_PROB] = log_prob
-    steps.set_non_tensor(keys.BEHAVIOR, f"{BEHAVIOR}?team=0")
-    steps.set_non_tensor(keys.SPEC, spec_to_dict(spec))
+    steps, log_prob = packed_steps(spec, data, network)  # acted by the initial weights
     ppo = PPO(network, settings)
     ppo.add(steps, torch.zeros(n, dtype=torch.int64))
     assert ppo.ready()
@@ -173,19 +194,11 @@ def mlagents(case: Path, anchor: Path) -> float:
     from mlagents.trainers.torch_entities.networks import SimpleActor
     from mlagents.trainers.trainer.trainer_utils import get_gae
     from mlagents.trainers.trajectory import ObsUtil
-    from mlagents_envs.base_env import (
-        ActionSpec,
-        BehaviorSpec,
-        DimensionProperty,
-        ObservationSpec,
-        ObservationType,
-    )
 
     register_trainer_plugins()
     d = np.load(case)
     settings = RunOptions.from_dict(yaml.safe_load(CONFIG.read_text())).behaviors[BEHAVIOR]
-    sensor = ObservationSpec((OBS_SIZE,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
-    spec = BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
+    spec = vector_spec(OBS_SIZE, BRANCH)
     actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
     policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
     optimizer = TorchPPOOptimizer(policy, settings)
