@@ -22,17 +22,20 @@ from pathlib import Path
 
 import numpy as np
 from check_ppo_vs_mlagents import (
+    BRANCH,
+    OBS_SIZE,
     anchor_workarounds,
     load_ours,
     main,
+    mlagents_ppo,
+    mlagents_update,
     packed_steps,
-    train_in_order,
     vector_spec,
     worst_difference,
 )
 
 CONFIG = Path(__file__).resolve().parent / "mlagents_configs" / "ppo_Pyramids.yaml"
-BEHAVIOR, OBS_SIZE, BRANCH, ROWS, UPDATES = "Pyramids", 20, 3, 17, 2
+BEHAVIOR, ROWS, UPDATES = "Pyramids", 17, 2  # the spec: check_ppo_vs_mlagents.py's
 # our parameter ("<module>:<name>") -> (ML-Agents' module, its parameter)
 ML_NAMES = {
     "net:trunk.0": ("actor", "network_body._body_endoder.seq_layers.0"),
@@ -124,68 +127,14 @@ def mlagents(case: Path, anchor: Path) -> float:
     its trainer's ``_process_trajectory`` and ``_update_policy`` run them; returns the
     worst difference from our weights, relative to how far the updates moved them."""
     anchor_workarounds(anchor)
-    import yaml
-    from mlagents.plugins.trainer_type import register_trainer_plugins
-    from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
-    from mlagents.trainers.policy.torch_policy import TorchPolicy
-    from mlagents.trainers.ppo.optimizer_torch import TorchPPOOptimizer
-    from mlagents.trainers.settings import RunOptions
-    from mlagents.trainers.torch_entities.networks import SimpleActor
-    from mlagents.trainers.trainer.trainer_utils import get_gae
-    from mlagents.trainers.trajectory import ObsUtil
-
-    register_trainer_plugins()
     d = np.load(case)
-    settings = RunOptions.from_dict(yaml.safe_load(CONFIG.read_text())).behaviors[BEHAVIOR]
-    spec = vector_spec(OBS_SIZE, BRANCH)
-    actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
-    policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
-    optimizer = TorchPPOOptimizer(policy, settings)
-    signals = optimizer.reward_signals
-    modules = {
-        "actor": policy.actor,
-        "critic": optimizer.critic,
-        "curiosity": signals["curiosity"]._network,
-    }
+    policy, optimizer, settings = mlagents_ppo(CONFIG, BEHAVIOR)
+    curiosity = optimizer.reward_signals["curiosity"]._network
+    modules = {"actor": policy.actor, "critic": optimizer.critic, "curiosity": curiosity}
     load_ours(modules, ML_NAMES, d)
-    obs_key, next_key = ObsUtil.get_name_at(0), ObsUtil.get_name_at_next(0)
-    horizon, h = int(d["horizon"]), settings.hyperparameters
     for u in range(UPDATES):
-        update = AgentBuffer()
-        for row in range(ROWS):  # one trajectory per row, as its trainer's _process_trajectory
-            trajectory = AgentBuffer()
-            done = bool(d["ends"][u, row])
-            for t in range(horizon):
-                trajectory[obs_key].append(d["obs"][u, row, t])
-                trajectory[next_key].append(d["obs"][u, row, t + 1])
-                trajectory[BufferKey.ENVIRONMENT_REWARDS].append(d["reward"][u, row, t])
-                trajectory[BufferKey.DISCRETE_ACTION].append(np.array([d["action"][u, row, t]]))
-                trajectory[BufferKey.CONTINUOUS_ACTION].append(np.zeros(0, np.float32))
-                trajectory[BufferKey.DISCRETE_LOG_PROBS].append(d["log_prob"][u, row, t : t + 1])
-                trajectory[BufferKey.CONTINUOUS_LOG_PROBS].append(np.zeros(0, np.float32))
-                trajectory[BufferKey.ACTION_MASK].append(np.ones(BRANCH, np.float32))
-                trajectory[BufferKey.MASKS].append(1.0)
-                trajectory[BufferKey.DONE].append(done and t == horizon - 1)
-            values, value_next, _ = optimizer.get_trajectory_value_estimates(
-                trajectory, [d["obs"][u, row, horizon]], done
-            )
-            advantages = []
-            for name, signal in signals.items():
-                trajectory[RewardSignalUtil.value_estimates_key(name)].extend(values[name])
-                rewards = signal.evaluate(trajectory) * signal.strength
-                advantage = get_gae(
-                    rewards=rewards,
-                    value_estimates=values[name],
-                    value_next=value_next[name],
-                    gamma=signal.gamma,
-                    lambd=h.lambd,
-                )
-                trajectory[RewardSignalUtil.returns_key(name)].set(advantage + values[name])
-                trajectory[RewardSignalUtil.advantage_key(name)].set(advantage)
-                advantages.append(advantage)
-            trajectory[BufferKey.ADVANTAGES].set(list(np.mean(advantages, axis=0)))
-            trajectory.resequence_and_append(update, training_length=policy.sequence_length)
-        train_in_order(update, optimizer, h)
+        rows = {k: d[k][u] for k in ("obs", "reward", "action", "ends")}
+        mlagents_update(policy, optimizer, settings, rows, d["log_prob"][u])
     return worst_difference(modules, ML_NAMES, d)
 
 

@@ -181,61 +181,80 @@ def worst_difference(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> flo
     return max(diff / (moved if moved >= 1e-3 * most else most) for diff, moved in rows)
 
 
-def mlagents(case: Path, anchor: Path) -> float:
-    """ML-Agents' PPO trainer and optimizer on the case's buffer; returns the worst
-    difference from our weights, relative to how far the update moved them."""
-    anchor_workarounds(anchor)
+def mlagents_ppo(config: Path, behavior: str) -> tuple[Any, Any, Any]:
+    """ML-Agents' PPO policy, optimizer and settings for ``behavior`` of ``config``, on
+    ``vector_spec(OBS_SIZE, BRANCH)``, built as its PPO trainer builds them."""
     import yaml
     from mlagents.plugins.trainer_type import register_trainer_plugins
-    from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
     from mlagents.trainers.policy.torch_policy import TorchPolicy
     from mlagents.trainers.ppo.optimizer_torch import TorchPPOOptimizer
     from mlagents.trainers.settings import RunOptions
     from mlagents.trainers.torch_entities.networks import SimpleActor
+
+    register_trainer_plugins()
+    settings = RunOptions.from_dict(yaml.safe_load(config.read_text())).behaviors[behavior]
+    actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
+    spec = vector_spec(OBS_SIZE, BRANCH)
+    policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
+    return policy, TorchPPOOptimizer(policy, settings), settings
+
+
+def mlagents_update(
+    policy: Any, optimizer: Any, settings: Any, rows: dict[str, np.ndarray], log_prob: Any
+) -> None:
+    """One update of ML-Agents' PPO on ``rows`` (as ``buffer``'s), each row one trajectory
+    as its trainer's ``_process_trajectory`` takes it (value estimates, every reward
+    signal's rewards times its strength, GAE with its gamma, the signals' advantages
+    averaged), then ``train_in_order``."""
+    from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
     from mlagents.trainers.trainer.trainer_utils import get_gae
     from mlagents.trainers.trajectory import ObsUtil
 
-    register_trainer_plugins()
-    d = np.load(case)
-    settings = RunOptions.from_dict(yaml.safe_load(CONFIG.read_text())).behaviors[BEHAVIOR]
-    spec = vector_spec(OBS_SIZE, BRANCH)
-    actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
-    policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
-    optimizer = TorchPPOOptimizer(policy, settings)
-    modules = {"actor": policy.actor, "critic": optimizer.critic}
-    load_ours(modules, ML_NAMES, d)
-
-    extrinsic = optimizer.reward_signals["extrinsic"]
-    update, obs_key, horizon = AgentBuffer(), ObsUtil.get_name_at(0), int(d["horizon"])
-    for row in range(ROWS):  # one trajectory per row, as its trainer's _process_trajectory
-        trajectory = AgentBuffer()
+    update, (count, horizon) = AgentBuffer(), rows["reward"].shape
+    obs_key, next_key = ObsUtil.get_name_at(0), ObsUtil.get_name_at_next(0)
+    for row in range(count):
+        trajectory, done = AgentBuffer(), bool(rows["ends"][row])
         for t in range(horizon):
-            trajectory[obs_key].append(d["obs"][row, t])
-            trajectory[BufferKey.ENVIRONMENT_REWARDS].append(d["reward"][row, t])
-            trajectory[BufferKey.DISCRETE_ACTION].append(np.array([d["action"][row, t]]))
+            trajectory[obs_key].append(rows["obs"][row, t])
+            trajectory[next_key].append(rows["obs"][row, t + 1])
+            trajectory[BufferKey.ENVIRONMENT_REWARDS].append(rows["reward"][row, t])
+            trajectory[BufferKey.DISCRETE_ACTION].append(np.array([rows["action"][row, t]]))
             trajectory[BufferKey.CONTINUOUS_ACTION].append(np.zeros(0, np.float32))
-            trajectory[BufferKey.DISCRETE_LOG_PROBS].append(d["log_prob"][row, t : t + 1])
+            trajectory[BufferKey.DISCRETE_LOG_PROBS].append(log_prob[row, t : t + 1])
             trajectory[BufferKey.CONTINUOUS_LOG_PROBS].append(np.zeros(0, np.float32))
             trajectory[BufferKey.ACTION_MASK].append(np.ones(BRANCH, np.float32))
             trajectory[BufferKey.MASKS].append(1.0)
-            trajectory[BufferKey.DONE].append(bool(d["ends"][row]) and t == horizon - 1)
+            trajectory[BufferKey.DONE].append(done and t == horizon - 1)
         values, value_next, _ = optimizer.get_trajectory_value_estimates(
-            trajectory, [d["obs"][row, horizon]], bool(d["ends"][row])
+            trajectory, [rows["obs"][row, horizon]], done
         )
-        value = values["extrinsic"]
-        trajectory[RewardSignalUtil.value_estimates_key("extrinsic")].extend(value)
-        advantage = get_gae(
-            rewards=extrinsic.evaluate(trajectory) * extrinsic.strength,
-            value_estimates=value,
-            value_next=value_next["extrinsic"],
-            gamma=extrinsic.gamma,
-            lambd=settings.hyperparameters.lambd,
-        )
-        trajectory[RewardSignalUtil.returns_key("extrinsic")].set(advantage + value)
-        trajectory[RewardSignalUtil.advantage_key("extrinsic")].set(advantage)
-        trajectory[BufferKey.ADVANTAGES].set(list(advantage))
+        advantages = []
+        for name, signal in optimizer.reward_signals.items():
+            trajectory[RewardSignalUtil.value_estimates_key(name)].extend(values[name])
+            advantage = get_gae(
+                rewards=signal.evaluate(trajectory) * signal.strength,
+                value_estimates=values[name],
+                value_next=value_next[name],
+                gamma=signal.gamma,
+                lambd=settings.hyperparameters.lambd,
+            )
+            trajectory[RewardSignalUtil.returns_key(name)].set(advantage + values[name])
+            trajectory[RewardSignalUtil.advantage_key(name)].set(advantage)
+            advantages.append(advantage)
+        trajectory[BufferKey.ADVANTAGES].set(list(np.mean(advantages, axis=0)))
         trajectory.resequence_and_append(update, training_length=policy.sequence_length)
     train_in_order(update, optimizer, settings.hyperparameters)
+
+
+def mlagents(case: Path, anchor: Path) -> float:
+    """ML-Agents' PPO trainer and optimizer on the case's buffer; returns the worst
+    difference from our weights, relative to how far the update moved them."""
+    anchor_workarounds(anchor)
+    d = np.load(case)
+    policy, optimizer, settings = mlagents_ppo(CONFIG, BEHAVIOR)
+    modules = {"actor": policy.actor, "critic": optimizer.critic}
+    load_ours(modules, ML_NAMES, d)
+    mlagents_update(policy, optimizer, settings, dict(d), d["log_prob"])
     return worst_difference(modules, ML_NAMES, d)
 
 
