@@ -24,18 +24,23 @@ import numpy as np
 from check_ppo_vs_mlagents import (
     BRANCH,
     OBS_SIZE,
+    REPORTED,
     anchor_workarounds,
     load_ours,
     main,
     mlagents_ppo,
     mlagents_update,
     packed_steps,
+    reported,
     vector_spec,
     worst_difference,
+    worst_report_difference,
 )
 
 CONFIG = Path(__file__).resolve().parent / "mlagents_configs" / "ppo_Pyramids.yaml"
 BEHAVIOR, ROWS, UPDATES = "Pyramids", 17, 2  # the spec: check_ppo_vs_mlagents.py's
+# the second update's TensorBoard figures, compared
+FIGURES = (*REPORTED, "Losses/Curiosity Forward Loss", "Losses/Curiosity Inverse Loss")
 # our parameter ("<module>:<name>") -> (ML-Agents' module, its parameter)
 ML_NAMES = {
     "net:trunk.0": ("actor", "network_body._body_endoder.seq_layers.0"),
@@ -119,7 +124,10 @@ def ours(seed: int, out: Path) -> None:
             torch.randperm = shuffle
         print(f"  ours, update {u}: curiosity reward {report['Policy/Curiosity Reward']:.2e}")
     after = weights("after")
-    np.savez(out, horizon=horizon, log_prob=np.stack(log_probs), **data, **initial, **after)
+    figures = reported(report, FIGURES)
+    np.savez(
+        out, horizon=horizon, log_prob=np.stack(log_probs), **data, **initial, **after, **figures
+    )
 
 
 def mlagents(case: Path, anchor: Path) -> float:
@@ -134,8 +142,8 @@ def mlagents(case: Path, anchor: Path) -> float:
     load_ours(modules, ML_NAMES, d)
     for u in range(UPDATES):
         rows = {k: d[k][u] for k in ("obs", "reward", "action", "ends")}
-        mlagents_update(policy, optimizer, settings, rows, d["log_prob"][u])
-    return worst_difference(modules, ML_NAMES, d)
+        figures = mlagents_update(policy, optimizer, settings, rows, d["log_prob"][u])
+    return max(worst_difference(modules, ML_NAMES, d), worst_report_difference(figures, d, FIGURES))
 
 
 if __name__ == "__main__":

@@ -22,16 +22,20 @@ from pathlib import Path
 import numpy as np
 import yaml
 from check_ppo_vs_mlagents import (
+    REPORTED,
     anchor_workarounds,
     load_ours,
     main,
+    reported,
     train_in_order,
     vector_spec,
     worst_difference,
+    worst_report_difference,
 )
 
 BEHAVIOR, OBS_SIZE, BRANCH, MATES = "Knights", 6, 3, 2
 ROWS, HORIZON = 24, 16
+FIGURES = (*REPORTED, "Losses/Baseline Loss")  # TensorBoard figures compared
 GROUP_ENDS, LEAVES, CUT = 0, 1, 2  # how a row ends
 CONFIG = {
     "behaviors": {
@@ -166,7 +170,7 @@ def ours(seed: int, out: Path) -> None:
     in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
     shuffle, torch.randperm = torch.randperm, in_order  # minibatches in order, as ML's below
     try:
-        poca.update(0.0)
+        report = poca.update(0.0)
     finally:
         torch.randperm = shuffle
     after = {
@@ -178,6 +182,7 @@ def ours(seed: int, out: Path) -> None:
         **d,
         **{f"initial/{k}": v for k, v in initial.items()},
         **{f"after/{k}": v for k, v in after.items()},
+        **reported(report, FIGURES),
     )
 
 
@@ -276,8 +281,8 @@ def mlagents(case_file: Path, anchor: Path) -> float:
         buffer[RewardSignalUtil.advantage_key("extrinsic")].set(advantage)
         buffer[BufferKey.ADVANTAGES].set(list(advantage))
         buffer.resequence_and_append(update, training_length=policy.sequence_length)
-    train_in_order(update, optimizer, h)
-    return worst_difference(modules, ML_NAMES, d)
+    figures = train_in_order(update, optimizer, h)
+    return max(worst_difference(modules, ML_NAMES, d), worst_report_difference(figures, d, FIGURES))
 
 
 if __name__ == "__main__":

@@ -39,7 +39,8 @@ ML_NAMES = {
     "critic_trunk.0": ("critic", "network_body._body_endoder.seq_layers.0"),
     "value": ("critic", "value_heads.value_heads.extrinsic"),
 }
-TOLERANCE = 1e-3  # of how far the update moved each parameter
+TOLERANCE = 1e-3  # of how far the update moved each parameter; of each reported loss
+REPORTED = ("Losses/Policy Loss", "Losses/Value Loss")  # TensorBoard figures compared
 
 
 def buffer(seed: int, horizon: int) -> dict[str, np.ndarray]:
@@ -130,7 +131,7 @@ def ours(seed: int, out: Path) -> None:
     in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
     shuffle, torch.randperm = torch.randperm, in_order  # minibatches in order, as ML's below
     try:
-        ppo.update(0.0)
+        report = ppo.update(0.0)
     finally:
         torch.randperm = shuffle
     after = {k: v.detach().numpy() for k, v in network.state_dict().items()}
@@ -141,7 +142,27 @@ def ours(seed: int, out: Path) -> None:
         **data,
         **{f"initial/{k}": v for k, v in initial.items()},
         **{f"after/{k}": v for k, v in after.items()},
+        **reported(report, REPORTED),
     )
+
+
+def reported(report: dict[str, float], tags: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """Our update's TensorBoard figures ``tags``, to save beside the weights."""
+    return {f"report/{tag}": np.array(report[tag]) for tag in tags}
+
+
+def worst_report_difference(
+    theirs: dict[str, float], d: np.lib.npyio.NpzFile, tags: tuple[str, ...]
+) -> float:
+    """The worst relative difference of ML-Agents' TensorBoard figures ``tags`` (its
+    update's means over minibatches) from ours."""
+    worst = 0.0
+    for tag in tags:
+        mine = float(d[f"report/{tag}"])
+        difference = abs(theirs[tag] - mine) / max(abs(theirs[tag]), 1e-12)
+        print(f"  {tag:<32} ML {theirs[tag]:.6g}, ours {mine:.6g}")
+        worst = max(worst, difference)
+    return worst
 
 
 def anchor_workarounds(anchor: Path) -> None:
@@ -201,11 +222,11 @@ def mlagents_ppo(config: Path, behavior: str) -> tuple[Any, Any, Any]:
 
 def mlagents_update(
     policy: Any, optimizer: Any, settings: Any, rows: dict[str, np.ndarray], log_prob: Any
-) -> None:
+) -> dict[str, float]:
     """One update of ML-Agents' PPO on ``rows`` (as ``buffer``'s), each row one trajectory
     as its trainer's ``_process_trajectory`` takes it (value estimates, every reward
     signal's rewards times its strength, GAE with its gamma, the signals' advantages
-    averaged), then ``train_in_order``."""
+    averaged), then ``train_in_order``; its figures."""
     from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
     from mlagents.trainers.trainer.trainer_utils import get_gae
     from mlagents.trainers.trajectory import ObsUtil
@@ -243,7 +264,7 @@ def mlagents_update(
             advantages.append(advantage)
         trajectory[BufferKey.ADVANTAGES].set(list(np.mean(advantages, axis=0)))
         trajectory.resequence_and_append(update, training_length=policy.sequence_length)
-    train_in_order(update, optimizer, settings.hyperparameters)
+    return train_in_order(update, optimizer, settings.hyperparameters)
 
 
 def mlagents(case: Path, anchor: Path) -> float:
@@ -254,26 +275,32 @@ def mlagents(case: Path, anchor: Path) -> float:
     policy, optimizer, settings = mlagents_ppo(CONFIG, BEHAVIOR)
     modules = {"actor": policy.actor, "critic": optimizer.critic}
     load_ours(modules, ML_NAMES, d)
-    mlagents_update(policy, optimizer, settings, dict(d), d["log_prob"])
-    return worst_difference(modules, ML_NAMES, d)
+    figures = mlagents_update(policy, optimizer, settings, dict(d), d["log_prob"])
+    return max(
+        worst_difference(modules, ML_NAMES, d), worst_report_difference(figures, d, REPORTED)
+    )
 
 
-def train_in_order(update: Any, optimizer: Any, h: Any) -> None:
+def train_in_order(update: Any, optimizer: Any, h: Any) -> dict[str, float]:
     """ML-Agents' ``_update_policy`` on its update buffer: the whole-buffer advantage
     normalization, then ``num_epoch`` passes of its optimizer's ``update`` over the
     minibatches, in order (its trainer shuffles here; ours is told not to either), each
-    also training the reward signals' networks."""
+    also training the reward signals' networks; the means of what they report, as its
+    trainer averages them for TensorBoard."""
     from mlagents.trainers.buffer import BufferKey
 
     advantages = np.array(update[BufferKey.ADVANTAGES].get_batch(), dtype=np.float32)
     normalized = (advantages - advantages.mean()) / (advantages.std() + 1e-10)
     update[BufferKey.ADVANTAGES].set(normalized)
-    n = update.num_experiences
+    n, figures = update.num_experiences, {}
     for _ in range(h.num_epoch):
         for start in range(0, (n // h.batch_size) * h.batch_size, h.batch_size):
             minibatch = update.make_mini_batch(start, start + h.batch_size)
-            optimizer.update(minibatch, h.batch_size)
-            optimizer.update_reward_signals(minibatch)  # curiosity's, rnd's ...
+            stats = optimizer.update(minibatch, h.batch_size)
+            stats.update(optimizer.update_reward_signals(minibatch))  # curiosity's ...
+            for tag, value in stats.items():
+                figures.setdefault(tag, []).append(float(value))
+    return {tag: float(np.mean(values)) for tag, values in figures.items()}
 
 
 def main(

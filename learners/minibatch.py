@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 REPORTED = (
     "loss_objective",
+    "objective_size",  # |loss_objective| of each minibatch: what ML-Agents reports
     "loss_critic",
     "loss_entropy",
     "entropy",

@@ -113,7 +113,8 @@ class POCA(PPO):
             value, baseline, returns = self.estimate_group(rows)
         advantage = returns - baseline
         trained = advantage[train]
-        advantage = (advantage - trained.mean()) / (trained.std() + 1e-10)
+        # numpy's std (no Bessel correction), as ML-Agents' _update_policy normalizes
+        advantage = (advantage - trained.mean()) / (trained.std(correction=0) + 1e-10)
 
         lr, epsilon, beta = self.schedules(progress)
         self.step.start(self._bind_group(advantage, returns, baseline), epsilon, beta)
@@ -121,7 +122,6 @@ class POCA(PPO):
         mean = self.step.means()
         return {
             **actor_critic_report(mean, lr, beta),
-            "Losses/Policy Loss": abs(mean["loss_objective"]),  # ML-Agents reports |loss|
             "Losses/Baseline Loss": mean["loss_baseline"] * 4,  # undo 0.5 * 0.5
             "Policy/Epsilon": epsilon,
             "Policy/Clip Fraction": mean["clip_fraction"],

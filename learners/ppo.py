@@ -79,9 +79,10 @@ def policy_terms(
     ratio = log_ratio.exp()  # [B, components]
     advantage = steps.advantage.unsqueeze(-1)
     surrogate = torch.min(ratio * advantage, ratio.clamp(1 - epsilon, 1 + epsilon) * advantage)
-    entropy = entropy.mean()
+    entropy, objective = entropy.mean(), -surrogate.mean()
     return {
-        "loss_objective": -surrogate.mean(),
+        "loss_objective": objective,
+        "objective_size": objective.detach().abs(),
         "loss_entropy": -beta * entropy,
         "entropy": entropy.detach(),
         "clip_fraction": ((ratio.detach() - 1.0).abs() > epsilon).float().mean(),
@@ -92,7 +93,8 @@ def policy_terms(
 def actor_critic_report(mean: dict[str, float], lr: float, beta: float) -> dict[str, float]:
     """ML-Agents' names for an actor-critic loss's means over one update."""
     return {
-        "Losses/Policy Loss": mean.get("loss_objective", 0.0),
+        # ML-Agents reports each minibatch's |policy loss|, averaged over the update
+        "Losses/Policy Loss": mean.get("objective_size", abs(mean.get("loss_objective", 0.0))),
         "Losses/Value Loss": mean.get("loss_critic", 0.0) * 2,  # undo critic_coeff 0.5
         "Policy/Entropy": mean.get("entropy", 0.0),
         "Policy/Learning Rate": lr,
@@ -195,7 +197,8 @@ class PPO:
         with torch.no_grad():
             value, advantage, value_target = self.estimate(rows)
         trained = advantage[train]
-        advantage = (advantage - trained.mean()) / (trained.std() + 1e-10)
+        # numpy's std (no Bessel correction), as ML-Agents' _update_policy normalizes
+        advantage = (advantage - trained.mean()) / (trained.std(correction=0) + 1e-10)
 
         lr, epsilon, beta = self.schedules(progress)
         self.step.start(self._bind(advantage, value_target), epsilon, beta)

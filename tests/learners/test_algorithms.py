@@ -4,6 +4,7 @@ versions and per-behavior policy lag."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -194,6 +195,27 @@ def test_ppo_clips_each_action_component_not_the_value_as_mlagents_learn():
     assert float(losses["clip_fraction"]) == pytest.approx(2 / 6)
     # (2 - 1)^2 and (0 - 1)^2: no clip around an old estimate. Weighted 0.5, as in ML-Agents.
     assert float(losses["loss_critic"].detach()) == pytest.approx(0.5 * (1.0 + 1.0) / 2)
+
+
+def test_ppo_normalizes_advantages_and_reports_its_policy_loss_as_mlagents(monkeypatch):
+    """ML-Agents divides the advantages by numpy's std (no Bessel correction) and reports
+    the mean over minibatches of each one's |policy loss|. With weights that do not move
+    (ratio 1), a minibatch's loss is minus its mean normalized advantage: hand-computable."""
+    spec = vector_spec(branches=(3,))
+    torch.manual_seed(0)
+    network = ActorCritic(spec, NetworkSettings(hidden_units=8, num_layers=1))
+    ppo = PPO(network, settings(batch_size=16, buffer_size=47, num_epoch=1, learning_rate=0.0))
+    batch = on_policy(network, segment(spec, 3, 16, seed=4))
+    ppo.add(batch, torch.zeros(48, dtype=torch.int64))
+    monkeypatch.setattr(torch, "randperm", lambda n, device=None: torch.arange(n, device=device))
+    twin = copy.deepcopy(ppo)
+    with torch.no_grad():
+        _, advantage, _ = twin.estimate(twin.store.take())
+    normalized = (advantage - advantage.mean()) / advantage.std(correction=0)
+    expected = normalized.reshape(3, 16).mean(-1).abs().mean()  # three minibatches in order
+    report = ppo.update(progress=0.0)
+    assert report["Losses/Policy Loss"] == pytest.approx(float(expected), rel=1e-4)
+    assert report["Losses/Policy Loss"] > 0.01  # the signed mean over minibatches is 0
 
 
 def test_ppo_drops_steps_older_than_max_policy_lag():
