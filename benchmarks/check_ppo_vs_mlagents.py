@@ -334,7 +334,7 @@ def main(
             case = Path(work) / f"case-{seed}.npz"
             me = [sys.executable, script, "--case", str(case), "--anchor", str(args.anchor)]
             subprocess.run([*me, "--side", "ours", "--seeds", str(seed)], check=True, cwd=ROOT)
-            print(f"seed {seed}: weights after the update, ML-Agents' code against ours")
+            print(f"seed {seed}: ML-Agents' code against ours")
             theirs = [str(args.anchor / "venv/bin/python"), *me[1:], "--side", "mlagents"]
             env = {**os.environ, "PYTHONPATH": str(args.anchor / "shim")}
             if subprocess.run(theirs, env=env, cwd=ROOT).returncode != 0:
