@@ -44,7 +44,8 @@ def gradient_step(
     losses: TensorDictBase, optimizer: torch.optim.Optimizer, totals: dict[str, Any]
 ) -> None:
     """Sum a loss's ``loss_*`` entries, step with the gradient clipped to norm 0.5, and add
-    every entry's value to ``totals`` (as tensors: read once per update)."""
+    every entry's value to ``totals`` (as tensors: read once per update), and the step's
+    |objective| (``objective_size``: what ``actor_critic_report`` reports, as for PPO)."""
     loss = sum(v for k, v in losses.items() if k.startswith("loss_"))
     params = [p for group in optimizer.param_groups for p in group["params"]]
     for param in params:
@@ -55,6 +56,8 @@ def gradient_step(
     with torch.no_grad():
         for key, value in losses.items():
             totals[key] = totals.get(key, 0.0) + value.detach().mean()
+        size = losses["loss_objective"].detach().abs()
+        totals["objective_size"] = totals.get("objective_size", 0.0) + size
     totals["updates"] = totals.get("updates", 0) + 1
 
 

@@ -94,7 +94,7 @@ def actor_critic_report(mean: dict[str, float], lr: float, beta: float) -> dict[
     """ML-Agents' names for an actor-critic loss's means over one update."""
     return {
         # ML-Agents reports each minibatch's |policy loss|, averaged over the update
-        "Losses/Policy Loss": mean.get("objective_size", abs(mean.get("loss_objective", 0.0))),
+        "Losses/Policy Loss": mean.get("objective_size", 0.0),
         "Losses/Value Loss": mean.get("loss_critic", 0.0) * 2,  # undo critic_coeff 0.5
         "Policy/Entropy": mean.get("entropy", 0.0),
         "Policy/Learning Rate": lr,

@@ -130,6 +130,7 @@ def test_losses_go_down_on_a_fixed_batch(trainer, actions):
     assert last["Losses/Value Loss"] < 0.5 * first["Losses/Value Loss"]
     assert last["Policy/Samples"] == 8 * 16
     assert math.isfinite(last["Losses/Policy Loss"]) and last["Policy/Entropy"] > 0
+    assert all(r["Losses/Policy Loss"] > 0 for r in reports)  # each minibatch's |loss|
 
 
 def test_policy_gradient_raises_the_log_prob_of_advantaged_actions():
