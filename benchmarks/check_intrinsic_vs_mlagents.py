@@ -37,6 +37,7 @@ from check_ppo_vs_mlagents import (
     mlagents_update,
     packed_steps,
     reported,
+    update_in_order,
     vector_spec,
     worst_difference,
     worst_report_difference,
@@ -65,24 +66,19 @@ class Case:
     figures: tuple[str, ...]
 
 
-def encoder(ours: str, theirs: str, layers: int) -> dict[str, tuple[str, str]]:
-    """A ``NetworkBody``'s MLP: our ``Body``'s trunk against ML-Agents' seq_layers."""
+def encoder(ours: str, module: str, body: str, layers: int) -> dict[str, tuple[str, str]]:
+    """A ``NetworkBody``'s MLP: our ``Body``'s trunk against ML-Agents' ``body`` of ``module``."""
     return {
-        f"sig:{ours}.network.trunk.{2 * i}": (theirs, f"{_ENCODER[theirs]}.seq_layers.{2 * i}")
+        f"sig:{ours}.network.trunk.{2 * i}": (module, f"{body}.seq_layers.{2 * i}")
         for i in range(layers)
     }
 
 
-_ENCODER = {
-    "curiosity": "_state_encoder._body_endoder",
-    "rnd_random": "_encoder._body_endoder",
-    "rnd_trained": "_encoder._body_endoder",
-}
 CASES = {
     "curiosity": Case(
         "ppo_Pyramids.yaml",
         {
-            **encoder("body", "curiosity", 2),
+            **encoder("body", "curiosity", "_state_encoder._body_endoder", 2),
             "sig:inverse.0": ("curiosity", "inverse_model_action_encoding.0.seq_layers.0"),
             "sig:discrete_head": ("curiosity", "discrete_action_prediction"),
             "sig:forward_model.0": (
@@ -96,7 +92,10 @@ CASES = {
     ),
     "rnd": Case(
         "ppo_PyramidsRND.yaml",
-        {**encoder("target", "rnd_random", 3), **encoder("predictor", "rnd_trained", 3)},
+        {
+            **encoder("target", "rnd_random", "_encoder._body_endoder", 3),
+            **encoder("predictor", "rnd_trained", "_encoder._body_endoder", 3),
+        },
         {"rnd_random": "_random_network", "rnd_trained": "_training_network"},
         (*REPORTED, "Losses/RND Loss"),
     ),
@@ -160,18 +159,13 @@ def ours_updates(seed: int, case: Case) -> dict[str, Any]:
     initial = weights("initial")
     data = buffers(seed, horizon)
     log_probs = []
-    in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
     for u in range(UPDATES):
         rows = {k: v[u] for k, v in data.items()}
         steps, log_prob = packed_steps(spec, rows, network, u, BEHAVIOR)  # acted now
         log_probs.append(log_prob.numpy().reshape(ROWS, horizon))
         ppo.add(steps, torch.full((ROWS * horizon,), u, dtype=torch.int64))
         assert ppo.ready()
-        shuffle, torch.randperm = torch.randperm, in_order  # in order, as ML's side below
-        try:
-            report = ppo.update(0.0)
-        finally:
-            torch.randperm = shuffle
+        report = update_in_order(ppo)
         reward = report[f"Policy/{signal.stat} Reward"]
         print(f"  ours, {signal.stat}, update {u}: reward {reward:.2e}")
     return {

@@ -28,6 +28,7 @@ from check_ppo_vs_mlagents import (
     main,
     reported,
     train_in_order,
+    update_in_order,
     vector_spec,
     worst_difference,
     worst_report_difference,
@@ -167,12 +168,7 @@ def ours(seed: int, out: Path) -> None:
     steps.set_non_tensor(keys.SPEC, spec_to_dict(spec))
     poca.add(steps, torch.zeros(n, dtype=torch.int64))
     assert poca.ready()
-    in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
-    shuffle, torch.randperm = torch.randperm, in_order  # minibatches in order, as ML's below
-    try:
-        report = poca.update(0.0)
-    finally:
-        torch.randperm = shuffle
+    report = update_in_order(poca)
     after = {
         p + k: v.detach().numpy() for p, m in modules.items() for k, v in m.state_dict().items()
     }

@@ -109,6 +109,19 @@ def packed_steps(
     return steps, log_prob
 
 
+def update_in_order(algorithm: Any) -> dict[str, float]:
+    """``algorithm.update(0.0)`` with its minibatches taken in order, as ML-Agents' side
+    takes them here (its trainer shuffles); the update's report."""
+    import torch
+
+    in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
+    shuffle, torch.randperm = torch.randperm, in_order
+    try:
+        return algorithm.update(0.0)
+    finally:
+        torch.randperm = shuffle
+
+
 def ours(seed: int, out: Path) -> None:
     import torch
 
@@ -128,12 +141,7 @@ def ours(seed: int, out: Path) -> None:
     ppo = PPO(network, settings)
     ppo.add(steps, torch.zeros(n, dtype=torch.int64))
     assert ppo.ready()
-    in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
-    shuffle, torch.randperm = torch.randperm, in_order  # minibatches in order, as ML's below
-    try:
-        report = ppo.update(0.0)
-    finally:
-        torch.randperm = shuffle
+    report = update_in_order(ppo)
     after = {k: v.detach().numpy() for k, v in network.state_dict().items()}
     np.savez(
         out,

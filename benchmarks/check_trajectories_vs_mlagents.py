@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from check_ppo_vs_mlagents import anchor_workarounds, main
+from check_ppo_vs_mlagents import anchor_workarounds, main, vector_spec
 
 AGENTS, EXCHANGES, HORIZON, BRANCH = 6, 400, 5, 3
 # a trajectory: observation numbers, actions, log-probabilities, rewards, whether it ends
@@ -102,25 +102,12 @@ def unity_steps(exchange: dict[str, np.ndarray]) -> tuple[Any, Any]:
     return decisions, terminals
 
 
-def spec() -> Any:
-    from mlagents_envs.base_env import (
-        ActionSpec,
-        BehaviorSpec,
-        DimensionProperty,
-        ObservationSpec,
-        ObservationType,
-    )
-
-    sensor = ObservationSpec((2,), (DimensionProperty.NONE,), ObservationType.DEFAULT, "v")
-    return BehaviorSpec([sensor], ActionSpec(0, (BRANCH,)))
-
-
 def ours(seed: int, out: Path) -> None:
     from rollout.decisions import Decisions
     from rollout.segments import SegmentBuilder
 
     exchanges = stream(seed)
-    builder = SegmentBuilder("B?team=0", spec(), HORIZON)
+    builder = SegmentBuilder("B?team=0", vector_spec(2, BRANCH), HORIZON)
     segments = []
     for exchange in exchanges:
         decisions, terminals = unity_steps(exchange)
@@ -164,7 +151,7 @@ def mlagents(case: Path, anchor: Path) -> float:
 
     case_data = pickle.loads(case.read_bytes())
     actor = {"conditional_sigma": False, "tanh_squash": False}
-    policy = TorchPolicy(0, spec(), NetworkSettings(), SimpleActor, actor)
+    policy = TorchPolicy(0, vector_spec(2, BRANCH), NetworkSettings(), SimpleActor, actor)
     processor = AgentProcessor(policy, "B?team=0", StatsReporter("check"), HORIZON)
     queue: AgentManagerQueue = AgentManagerQueue("B?team=0")
     processor.publish_trajectory_queue(queue)
