@@ -8,9 +8,9 @@ after Ray is up; had the learner's actor answered nothing until then, the servic
 hold them back (it keeps a few submissions in flight), and the first summary would wait
 for the learner's imports. So ``LearnerHost`` answers at once: until its
 ``CentralLearner`` is built it keeps what arrives (each source once), counts its steps
-for ``progress``, and states an on-policy behavior's demand from the config; a submission
-that fills that demand waits for the learner, and the next one hands everything over
-in order.
+for ``progress``, and states an on-policy behavior's demand from the config. A submission
+that fills that demand, or the run's steps, waits for the learner and hands everything
+over in order: the run is not done before the learner has trained on its steps.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from batches import keys
 from batches.contracts import Snapshot, Weights
 from batches.segment import Segment, Sources
-from learners.counters import LearnerStats, all_done, demand, on_policy_wanted
+from learners.counters import LearnerStats, demand, on_policy_wanted
 from learners.trainers import trainer
 
 if TYPE_CHECKING:
@@ -125,8 +125,10 @@ class LearnerHost:
             if not self._built.is_set():
                 self._keep_early(segments)
                 wanted = self._early_wanted()
-                if wanted != 1:  # no update is due: its data is not all in, or none will be
+                if wanted is None or wanted > 1:  # no update due, and the run goes on
                     return 0, wanted
+                # an update is due, or the run has its steps: the learner trains on them
+                # all before the run may end (a short SAC run once ended untrained)
                 segments = []  # kept: handed over with the others, once the learner is up
             return self.learner.submit(segments)
 
@@ -168,10 +170,9 @@ class LearnerHost:
 
     def progress(self) -> dict[str, Any]:
         """Steps per behavior, those not yet handed over included."""
-        if self._learner is None:
+        if self._learner is None:  # never done: the learner has yet to train on them
             steps = dict(self._early_steps)
-            done = all_done(steps, self.config, self.max_steps)
-            return {"version": 0, "steps": steps, "done": done, "stats": LearnerStats()}
+            return {"version": 0, "steps": steps, "done": False, "stats": LearnerStats()}
         progress = self._learner.progress()
         for behavior, steps in list(self._early_steps.items()):
             progress["steps"][behavior] = progress["steps"].get(behavior, 0) + steps

@@ -107,9 +107,39 @@ def test_the_demand_never_passes_max_steps_and_ends_at_zero(built):
                 host.gate.set()
                 host.prepare()
             assert host.submit([piece(1)]) == (0, first)
+            host.gate.set()  # loading: the last submission waits for the build
             assert host.submit([piece(2), piece(3)])[1] == 0  # 96 steps of 80
         finally:
             host.gate.set()
+
+
+def test_a_run_whose_steps_all_came_before_the_build_ends_only_once_trained():
+    """A short SAC run (--max-steps 80, updates from 64 steps) whose workers bring every
+    step while the learner still loads torch: the submission with the last steps waits
+    for the learner, the run is not done before then, and the learner has updated on
+    them when it is (in CI, such a run once ended with no update at all)."""
+    config = parse_config(
+        {"behaviors": {"A": {"trainer_type": "sac", "hyperparameters": {"batch_size": 64}}}}
+    )
+    host = HeldHost(config, 80, 1, seed=0)
+    try:
+        assert host.submit([piece(1), piece(2)]) == (0, None)  # 64 of 80: the run goes on
+        answer: list[tuple[int, int | None]] = []
+        ending = threading.Thread(target=lambda: answer.append(host.submit([piece(3)])))
+        ending.start()
+        ending.join(0.5)
+        assert ending.is_alive() and answer == []  # 96 steps of 80: it waits for the build
+        progress = host.progress()
+        assert progress["steps"] == {BEHAVIOR: 96} and not progress["done"]
+        host.gate.set()
+        ending.join(120)
+        assert answer and answer[0][1] == 0  # the run has its steps
+        progress = host.progress()
+        assert progress["done"] and progress["version"] >= 1
+        reports = host.drain_reports()
+        assert any(r["Policy/Gradient Steps"] > 0 for _, _, r in reports)
+    finally:
+        host.gate.set()
 
 
 @pytest.mark.parametrize("built", [False, True], ids=["loading", "built"])
@@ -125,17 +155,19 @@ def test_a_behavior_met_before_its_rows_counts_towards_the_end_of_the_run(built)
         if built:
             host.gate.set()
             host.prepare()
-        host.submit([piece(1), piece(2), piece(3)])  # 96 steps of A's 80
+        host.submit([piece(1), piece(2)])  # 64 steps of A's 80
         meeting = threading.Thread(target=host.meet, args=(specs,))
         meeting.start()  # while loading, it waits for the build
         deadline = time.monotonic() + 10
         while "B" not in host.progress()["steps"] and time.monotonic() < deadline:
             time.sleep(0.01)
         progress = host.progress()
-        assert progress["steps"] == {BEHAVIOR: 96, "B": 0} and not progress["done"]
+        assert progress["steps"] == {BEHAVIOR: 64, "B": 0} and not progress["done"]
         host.gate.set()
         meeting.join(120)
-        assert not host.progress()["done"]
+        host.submit([piece(3)])  # A has its steps, B none yet
+        progress = host.progress()
+        assert progress["steps"] == {BEHAVIOR: 96, "B": 0} and not progress["done"]
         host.submit([as_segment(segment(vector_spec(continuous=2), 3, 32, "B"), ("w", 4))])
         progress = host.progress()
         assert progress["steps"] == {BEHAVIOR: 96, "B": 96} and progress["done"]
