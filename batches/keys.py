@@ -34,6 +34,9 @@ GROUP_REWARD = "group_reward"  # ("next", GROUP_REWARD) float32 [1]
 DONE = "done"  # ("next", DONE) bool [1]: the episode ended after this step
 TERMINATED = "terminated"  # ("next", TERMINATED): ended for real (bootstrap with 0)
 TRUNCATED = "truncated"  # ("next", TRUNCATED): interrupted (MaxStep) or cut: bootstrap
+# ("next", CUT) bool [1]: truncated at a row's end while the episode goes on (a horizon);
+# optional (absent: none): an episode ended where ``done`` and not ``CUT``
+CUT = "cut"
 
 # Segment metadata, one value per row (batch dimension only).
 WORKER = "worker"  # int64: index of the worker that collected the row

@@ -166,8 +166,9 @@ def ours_updates(seed: int, case: Case) -> dict[str, Any]:
         ppo.add(steps, torch.full((ROWS * horizon,), u, dtype=torch.int64))
         assert ppo.ready()
         report = update_in_order(ppo)
-        reward = report[f"Policy/{signal.stat} Reward"]
-        print(f"  ours, {signal.stat}, update {u}: reward {reward:.2e}")
+        reward = report.get(f"Policy/{signal.stat} Reward")  # per finished episode
+        said = "no episode ended" if reward is None else f"reward {reward:.2e} per episode"
+        print(f"  ours, {signal.stat}, update {u}: {said}")
     return {
         "horizon": horizon,
         "log_prob": np.stack(log_probs),

@@ -157,7 +157,11 @@ class PPO:
         self.signals = Signals(network, settings.reward_signals, device, experts)
         self.optimizer = adam(self.trained_parameters(), h.learning_rate, self.compute)
         self.store = TrajectoryStore(
-            h.buffer_size, device, self.groupmates, terminal_obs=self.signals.terminal_obs
+            h.buffer_size,
+            device,
+            self.groupmates,
+            terminal_obs=self.signals.terminal_obs,
+            episodes=bool(self.signals),
         )
         self.step = MinibatchStep(
             self._minibatch_loss, self.optimizer, h.batch_size, self.compute, self.reported

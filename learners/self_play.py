@@ -269,6 +269,8 @@ def learning_steps(segment: TensorDict, keep: torch.Tensor) -> TensorDict:
         rows = cut[keep]
         part[keys.NEXT, keys.DONE][rows] = True
         part[keys.NEXT, keys.TRUNCATED][rows] = True
+        if (cuts := part.get((keys.NEXT, keys.CUT), None)) is not None:
+            cuts[rows] = True
     return part
 
 

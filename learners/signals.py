@@ -8,10 +8,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
 from batches.expert_steps import ExpertSteps
+from learners.episode_sums import EpisodeSums
 from learners.gail import GAIL
 from learners.intrinsic import RND, Curiosity
 from learners.policies import ActorCritic
@@ -64,6 +66,8 @@ class Signals:
         self.heads = nn.ModuleList(xavier(width, 1) for _ in settings).to(device)
         self._steps: Transitions | None = None
         self._rewards: list[torch.Tensor] = []
+        self._episodes = EpisodeSums(len(self.items))
+        self._finished = np.zeros((0, len(self.items)))  # this update's ended episodes' sums
 
     def __len__(self) -> int:
         return len(self.items)
@@ -87,6 +91,8 @@ class Signals:
             * s.strength
             for s in self.items
         ]
+        assert rows.agent is not None and rows.ended is not None  # a store with episodes
+        self._finished = self._episodes.finished(rows.agent, rows.ended, self._rewards)
         return [(r, s.gamma, s.ignore_done) for r, s in zip(self._rewards, self.items, strict=True)]
 
     def train(self, train: torch.Tensor, num_epoch: int, batch_size: int) -> dict[str, float]:
@@ -110,12 +116,14 @@ class Signals:
         return {name: total / max(count, 1) for name, total in sums.items()}
 
     def report(self, value: torch.Tensor, train: torch.Tensor) -> dict[str, float]:
-        """ML-Agents' ``Policy/<Signal> Value Estimate`` and ``Policy/<Signal> Reward``;
-        the reward here is the mean per trained step (ML-Agents: per episode)."""
+        """ML-Agents' ``Policy/<Signal> Value Estimate`` and ``Policy/<Signal> Reward``:
+        the mean strength-weighted sum per episode of the episodes that ended in this
+        update (none ended: no reward figure)."""
         out = {}
-        for k, (signal, reward) in enumerate(zip(self.items, self._rewards, strict=True)):
+        for k, signal in enumerate(self.items):
             out[f"Policy/{signal.stat} Value Estimate"] = float(value[train, 1 + k].mean())
-            out[f"Policy/{signal.stat} Reward"] = float(reward[train].mean())
+            if len(self._finished):
+                out[f"Policy/{signal.stat} Reward"] = float(self._finished[:, k].mean())
         return out
 
     def state_dict(self) -> dict[str, Any]:

@@ -58,10 +58,12 @@ class Rows:
     train: torch.Tensor  # [n] bool: counts in the loss (else context for the estimator)
     end_rows: torch.Tensor  # [e] int64: the ends that bootstrap, in row order
     end_obs: dict[str, torch.Tensor]  # [e, ...]: their next observations
-    # a recurrent policy's only: the memory each step's decision read [n, memory_size],
-    # and the agent (worker and Unity id in one int64) [n]
+    # a recurrent policy's only: the memory each step's decision read [n, memory_size]
     memory: torch.Tensor | None = None
+    # a recurrent policy's and a store's with ``episodes``: the agent (worker and Unity id
+    # in one int64) [n]; the latter's also where an episode ended (not a cut) [n] bool
     agent: torch.Tensor | None = None
+    ended: torch.Tensor | None = None
     # groupmates only: "obs/<sensor>" [n, M, ...], "continuous", "discrete", "present",
     # "reward" [n, M]; at the ends "obs/<sensor>" and "present"
     groupmates: dict[str, torch.Tensor] = field(default_factory=dict)
@@ -80,11 +82,14 @@ class TrajectoryStore:
         device: torch.device | str = "cpu",
         groupmates: bool = False,
         terminal_obs: bool = False,
+        episodes: bool = False,
     ) -> None:
         """``terminal_obs``: keep the next observation at terminated ends too (intrinsic
-        signals bootstrap there and read it)."""
+        signals bootstrap there and read it). ``episodes``: keep each step's agent and
+        whether its episode ended there (per-episode sums, as ML-Agents reports them)."""
         self.buffer_size = buffer_size
         self.terminal_obs = terminal_obs
+        self.episodes = episodes
         self.device = torch.device(device)
         self.groupmates = groupmates
         self.places = 0  # groupmate places kept per step
@@ -159,6 +164,7 @@ class TrajectoryStore:
             end_groupmates=end_mates,
             memory=column("memory"),
             agent=column("agent"),
+            ended=column("ended"),
         )
 
     def nbytes(self) -> int:
@@ -182,8 +188,13 @@ class TrajectoryStore:
         fields["train"] = keep.to(torch.bool)
         if (memory := segment.get(keys.MEMORY, None)) is not None:
             fields["memory"] = memory
+        if memory is not None or self.episodes:
             worker = segment.get(keys.WORKER, torch.zeros_like(segment[keys.AGENT_ID]))
             fields["agent"] = worker * 2**32 + segment[keys.AGENT_ID]
+        if self.episodes:
+            cut = segment.get((keys.NEXT, keys.CUT), None)
+            ended = fields["done"] if cut is None else fields["done"] & ~cut.reshape(-1)
+            fields["ended"] = ended
         if self.groupmates:
             mates = segment[keys.GROUPMATES]
             fields |= {"mate_obs/" + n: v for n, v in mates[keys.OBS].items()}

@@ -322,6 +322,8 @@ class SegmentBuilder:
         truncated = f["truncated"][row_of, time]
         cut = ends[~done[ends]]
         done[cut], truncated[cut] = True, True
+        cuts = np.zeros(n, np.bool_)
+        cuts[cut] = True
 
         def take(name: str, scalar: bool = False) -> np.ndarray:
             array = f[name][row_of, time]
@@ -351,6 +353,7 @@ class SegmentBuilder:
                 keys.DONE: flag(done),
                 keys.TERMINATED: take("terminated", scalar=True),
                 keys.TRUNCATED: flag(truncated),
+                keys.CUT: flag(cuts),
             },
         }
         if self._mask_size:

@@ -177,3 +177,11 @@ def assert_run_gone(marker: str, seconds: float = 60) -> None:
         with contextlib.suppress(psutil.NoSuchProcess):
             process.kill()
     assert not left, f"processes outlived the run: {[p.cmdline()[:3] for p in left]}"
+
+
+def assert_rewards_per_episode(scalars: list[str], *signals: str) -> None:
+    """As ML-Agents: a signal's ``Policy/<Signal> Reward`` is its sum per finished episode,
+    so a short run whose rows were all cut at the horizon writes none."""
+    ended = "Environment/Cumulative Reward" in scalars
+    for name in signals:
+        assert f"Policy/{name} Reward" not in scalars or ended, (name, scalars)

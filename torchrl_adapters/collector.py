@@ -183,6 +183,8 @@ class UnityCollector(IterableDataset):
         elif not bool(batch[-1][keys.NEXT, keys.DONE]):  # a row cut here: bootstrap, as
             batch[keys.NEXT, keys.DONE][-1] = True  # at a horizon cut
             batch[keys.NEXT, keys.TRUNCATED][-1] = True
+            if (cuts := batch.get((keys.NEXT, keys.CUT), None)) is not None:
+                cuts[-1] = True
         return batch
 
 

@@ -20,6 +20,7 @@ from learners.cloning import REPORT
 from rollout.service import RolloutError
 from tests.demonstrations.samples import CONTINUOUS, demonstration
 from tests.driver.test_record_demo import record
+from tests.helpers import assert_rewards_per_episode
 
 pytestmark = pytest.mark.integration
 
@@ -63,8 +64,9 @@ def test_mlagents_imitation_hallway_config_trains_with_memory_and_gail(ray_sessi
     path.write_text(yaml.safe_dump(config))
     result = train(options(tmp_path, path, max_steps=2_100))
     scalars = EventAccumulator(str(result.run_dir / "Hallway")).Reload().Tags()["scalars"]
-    for tag in ("Policy/Gail Reward", "Losses/GAIL Loss", "Losses/Policy Loss"):
+    for tag in ("Policy/Gail Value Estimate", "Losses/GAIL Loss", "Losses/Policy Loss"):
         assert tag in scalars, (tag, scalars)
+    assert_rewards_per_episode(scalars, "Gail")
 
 
 def test_ppo_clones_hallways_expert_beside_its_own_steps(ray_session, tmp_path):

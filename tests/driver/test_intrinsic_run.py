@@ -15,6 +15,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from driver.options import TrainOptions
 from driver.train import train
 from tests.driver.test_record_demo import record
+from tests.helpers import assert_rewards_per_episode
 
 pytestmark = pytest.mark.integration
 
@@ -45,8 +46,9 @@ def train_pyramids(tmp_path: Path, data: dict, steps: int = 4_200) -> list[str]:
 def test_rnd_trains_beside_the_extrinsic_signal(ray_session, tmp_path):
     """(Curiosity: the imitation config below has it.)"""
     scalars = train_pyramids(tmp_path, yaml.safe_load((CONFIGS / "PyramidsRND.yaml").read_text()))
-    for tag in ("Policy/Rnd Reward", "Policy/Rnd Value Estimate", "Losses/RND Loss"):
+    for tag in ("Policy/Rnd Value Estimate", "Losses/RND Loss"):
         assert tag in scalars, (tag, scalars)
+    assert_rewards_per_episode(scalars, "Rnd")
     assert "Policy/Extrinsic Value Estimate" in scalars
 
 
@@ -64,16 +66,15 @@ def test_mlagents_imitation_config_trains_with_gail_cloning_and_curiosity(ray_se
     pyramids["behavioral_cloning"]["demo_path"] = str(demo)
     scalars = train_pyramids(tmp_path, data)
     for tag in (
-        "Policy/Gail Reward",
         "Policy/Gail Value Estimate",
         "Losses/GAIL Loss",
         "Policy/GAIL Expert Estimate",
-        "Policy/Curiosity Reward",
         "Policy/Curiosity Value Estimate",
         "Losses/Curiosity Forward Loss",
         "Losses/Pretraining Loss",
     ):
         assert tag in scalars, (tag, scalars)
+    assert_rewards_per_episode(scalars, "Gail", "Curiosity")
 
 
 def test_mlagents_sac_pyramids_config_trains_with_gail(ray_session, tmp_path):

@@ -154,6 +154,8 @@ def test_3dball_rows_are_cut_at_the_horizon_and_weights_versions_are_stamped(all
         assert len(first) == 1 and first[0].batch_size == torch.Size([120])
         assert [p.stop - p.start for p in trajectories(first[0])] == [10] * 12
         assert first[0][keys.NEXT, keys.TRUNCATED][9::10].all()
+        cuts = first[0][keys.NEXT, keys.CUT][:, 0]  # the episodes go on
+        assert cuts[9::10].all() and int(cuts.sum()) == 12
         assert (first[0][keys.POLICY_VERSION] == 0).all()
         spec = collector.unity.behavior_specs["3DBall?team=0"]
         initial = actor_factory.initial_weights("3DBall?team=0", spec)

@@ -120,3 +120,39 @@ def test_png_sensors_are_kept_as_exact_uint8_and_vectors_as_float32():
     assert not step_spec(spec).expand(4).is_in(batch.exclude(*keys.METADATA))
     image_bytes = obs["Camera"].nbytes + nxt["Camera"].nbytes
     assert image_bytes * 4 == 2 * 4 * 3 * 5 * 4 * 4  # float32 would be 4x
+
+
+def test_a_row_cut_at_the_horizon_is_marked_cut_and_an_interrupted_end_is_not():
+    """Both are ``truncated`` (the learner bootstraps at either); only the cut leaves the
+    episode going on (``("next", "cut")``), so per-episode figures end at the other."""
+    from mlagents_envs.base_env import DecisionSteps, TerminalSteps
+
+    from rollout.decisions import Decisions
+    from rollout.segments import SegmentBuilder
+
+    spec = vector_spec(2, branches=(3,))
+    builder = SegmentBuilder("B?team=0", spec, horizon=3)
+    ids = np.array([7], np.int32)
+    obs = [np.zeros((1, 2), np.float32)]
+    chosen = Decisions(np.zeros((1, 0), np.float32), np.ones((1, 1), np.int64), np.zeros((1, 1)))
+    zero, group = np.zeros(1, np.float32), np.zeros(1, np.int32)
+    decision = DecisionSteps(obs, zero, ids, None, group, zero)
+    none = TerminalSteps.empty(spec)
+    interrupted = TerminalSteps(obs, zero, np.ones(1, bool), ids, group, zero)
+    rows = []
+    for t in range(6):  # decisions at 0..4, the episode interrupted at exchange 5
+        ending = t == 5
+        if ending:
+            builder.observe(DecisionSteps.empty(spec), interrupted)
+        else:
+            builder.observe(decision, none)
+        if (segment := builder.collect()) is not None:
+            rows.append(segment)
+        if not ending:
+            builder.act(decision, chosen, policy_version=t)
+    segment = Segment.concat(rows)
+    nxt = segment.data[keys.NEXT]
+    assert len(segment) == 5  # a row of the horizon (3 steps), then one of 2 to the end
+    assert nxt[keys.TRUNCATED][:, 0].tolist() == [False, False, True, False, True]
+    assert nxt[keys.DONE][:, 0].tolist() == [False, False, True, False, True]
+    assert nxt[keys.CUT][:, 0].tolist() == [False, False, True, False, False]
