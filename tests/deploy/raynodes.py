@@ -271,18 +271,35 @@ def private_cluster(
     nodes: list[RayNode] = []
     node_env = node_env or [{} for _ in node_cpus]
     try:
-        loopback = len(node_cpus) == 1
-        head = start_node("head", token, tag, None, node_cpus[0], node_env[0], loopback)
-        nodes.append(head)
-        address = f"{LOOPBACK}:{head.ports['gcs']}"
-        for index, cpus in enumerate(node_cpus[1:], start=1):
-            nodes.append(
-                start_node(f"w{index}", token, tag, address, cpus, extra_env=node_env[index])
-            )
+        try:
+            _start_cluster(nodes, token, tag, node_cpus, node_env)
+        except RuntimeError:
+            # A worker node that waited twice on the head's GCS: the head itself is stuck
+            # (seen once on two loaded cores). The whole cluster starts once more.
+            left = stop_nodes(nodes)
+            assert not left, f"processes of the private Ray cluster survived: {left}"
+            nodes.clear()
+            _start_cluster(nodes, token, tag, node_cpus, node_env)
         yield nodes
     finally:
         left = stop_nodes(nodes) if nodes else []
         assert not left, f"processes of the private Ray cluster survived: {left}"
+
+
+def _start_cluster(
+    nodes: list[RayNode],
+    token: str,
+    tag: str,
+    node_cpus: list[int],
+    node_env: list[dict[str, str]],
+) -> None:
+    """The head, then each worker node, appended to ``nodes`` as each comes up."""
+    loopback = len(node_cpus) == 1
+    head = start_node("head", token, tag, None, node_cpus[0], node_env[0], loopback)
+    nodes.append(head)
+    address = f"{LOOPBACK}:{head.ports['gcs']}"
+    for index, cpus in enumerate(node_cpus[1:], start=1):
+        nodes.append(start_node(f"w{index}", token, tag, address, cpus, extra_env=node_env[index]))
 
 
 def listening_addresses(tag: str) -> dict[str, list[str]]:
