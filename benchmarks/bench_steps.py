@@ -71,7 +71,7 @@ def one_seed(args: argparse.Namespace) -> dict:
                         other.load_weights(*learner.weights())
             for collector in collectors:
                 for builder in collector.builders.values():
-                    returns.extend(builder.drain_episodes()[0].tolist())
+                    returns.extend(builder.episodes.drain().returns.tolist())
             steps = sum(learner.progress()["steps"].values())
             while steps >= next_summary and not done:
                 mean = float(np.mean(returns)) if returns else float("nan")

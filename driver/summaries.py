@@ -35,6 +35,7 @@ from tensorboard.compat.proto.summary_pb2 import HistogramProto, Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
 from batches.contracts import base_name
+from learners.settings import TrainerSettings
 from rollout.service_metrics import ServiceMetrics, Stat, merge_stats
 
 _RATE_TAGS = {
@@ -94,6 +95,7 @@ class _Window:
     length_sum: int = 0
     group_episodes: int = 0
     group_return_sum: float = 0.0
+    extras: tuple[float, float] = (0.0, 0.0)  # ServiceMetrics.episode_extras at the last one
     losses: dict[str, list[float]] = field(default_factory=dict)
     unity_stats: dict[str, Stat] = field(default_factory=dict)  # since the last summary
     last_reward: float | None = None
@@ -104,13 +106,13 @@ class Summaries:
     def __init__(
         self,
         run_dir: Path,
-        summary_freq: Callable[[str], int],
+        settings: Callable[[str], TrainerSettings],
         progress: bool = True,
         console: Console | None = None,
         start_steps: Mapping[str, int] | None = None,
     ) -> None:
         self.run_dir = run_dir
-        self.summary_freq = summary_freq
+        self.settings = settings  # each behavior's (summary_freq, the extrinsic signal)
         # per behavior, the step the run starts from (a resumed run's checkpoint): the first
         # summary is due at the first multiple of summary_freq after it, however late the
         # first look at the learner comes (a short or fast run may be past it by then)
@@ -170,7 +172,7 @@ class Summaries:
             merge_stats(window.unity_stats, unity_stats)
             if step >= window.next_step:
                 self._write(behavior, step, window, totals.get(behavior), metrics)
-                window.next_step = next_multiple(step, self.summary_freq(behavior))
+                window.next_step = next_multiple(step, self.settings(behavior).summary_freq)
         if self.live is not None:
             self.live.update(self._table(metrics, progress), refresh=True)
         elif (faults := metrics.faults()) != self._faults:  # a line per change, as it happens
@@ -189,7 +191,7 @@ class Summaries:
         if behavior not in self.windows:
             start = min(step, self.start_steps.get(behavior, 0))
             self.windows[behavior] = _Window(
-                next_step=next_multiple(start, self.summary_freq(behavior))
+                next_step=next_multiple(start, self.settings(behavior).summary_freq)
             )
         return self.windows[behavior]
 
@@ -219,6 +221,8 @@ class Summaries:
             line = (
                 f"Mean Reward: {window.last_reward:.3f}. Episode Length: {window.last_length:.1f}."
             )
+            gained = (return_sum - window.return_sum, new)
+            self._extrinsic_reward(writer, behavior, step, gained, metrics)
             line += self._group_reward(writer, behavior, step, window, metrics)
             if elo := window.losses.get("Self-play/ELO"):  # as mlagents-learn's line
                 line += f" ELO: {elo[-1]:.3f}."
@@ -231,6 +235,7 @@ class Summaries:
             )
         if totals is not None:
             window.episodes, window.return_sum, window.length_sum = totals
+            window.extras = metrics.episode_extras().get(behavior, window.extras)
         for key, values in window.losses.items():
             writer.add_scalar(key, sum(values) / len(values), step)
         window.losses = {}
@@ -249,6 +254,29 @@ class Summaries:
         for name, rate in self.rates.items():
             writer.add_scalar(_RATE_TAGS[name], rate, step)
         writer.flush()
+
+    def _extrinsic_reward(
+        self,
+        writer: ScalarWriter,
+        behavior: str,
+        step: int,
+        gained: tuple[float, int],
+        metrics: ServiceMetrics,
+    ) -> None:
+        """ML-Agents' ``Policy/Extrinsic Reward``: over the episodes since the last summary,
+        the mean of each one's rewards with its group rewards (under POCA with its
+        groupmates' rewards too), times the signal's strength; none without the signal."""
+        settings, window = self.settings(behavior), self.windows[behavior]
+        if not settings.reward_strength:
+            return
+        returns, episodes = gained
+        group, mates = metrics.episode_extras().get(behavior, window.extras)
+        total = returns + group - window.extras[0]
+        if settings.trainer_type == "poca":
+            total += mates - window.extras[1]
+        writer.add_scalar(
+            "Policy/Extrinsic Reward", settings.reward_strength * total / episodes, step
+        )
 
     @staticmethod
     def _group_reward(

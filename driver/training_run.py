@@ -116,7 +116,7 @@ class TrainingRun:
         self.summaries = self._stack.enter_context(
             Summaries(
                 self.run_dir,
-                lambda behavior: config.for_behavior(behavior).summary_freq,
+                config.for_behavior,
                 options.progress,
                 start_steps=self.start_steps,
             )

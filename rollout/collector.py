@@ -57,6 +57,9 @@ class BehaviorStats:
     dropped_steps: int = 0
     group_episodes: int = 0  # grouped agents' episodes that ended with their group
     group_return_sum: float = 0.0  # their group rewards
+    # within the agents' episodes counted in ``episodes``: group rewards, groupmates' rewards
+    episode_group_sum: float = 0.0
+    episode_mates_sum: float = 0.0
 
 
 @dataclass
@@ -298,14 +301,16 @@ class Collector:
         metrics.agent_steps = sum(b.counters.steps for b in self.builders.values())
         for behavior, builder in self.builders.items():
             stats = metrics.behaviors[behavior]
-            returns, lengths = builder.drain_episodes()
-            stats.episodes += len(returns)
-            stats.return_sum += float(returns.sum())
-            stats.length_sum += int(lengths.sum())
+            ended = builder.episodes.drain()
+            stats.episodes += len(ended.returns)
+            stats.return_sum += float(ended.returns.sum())
+            stats.length_sum += int(ended.lengths.sum())
+            stats.episode_group_sum += float(ended.group_rewards.sum())
+            stats.episode_mates_sum += float(ended.mates_rewards.sum())
             stats.agent_steps = builder.counters.steps
             stats.rows = builder.counters.rows
             stats.dropped_steps = builder.counters.dropped_steps
-            group_returns = builder.drain_group_episodes()
+            group_returns = builder.episodes.drain_group()
             stats.group_episodes += len(group_returns)
             stats.group_return_sum += float(group_returns.sum())
         stats = self.unity.drain_stats() if self.unity.env is not None else {}

@@ -115,13 +115,16 @@ class Groupmates:
             st[f"obs/{name}"][slots] = before[grouped]
             st[f"now/{name}"][slots] = now[grouped]
 
-    def record(self, slots: np.ndarray, time: np.ndarray, group: np.ndarray) -> np.ndarray:
+    def record(
+        self, slots: np.ndarray, time: np.ndarray, group: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The groupmates of transitions just completed at row positions ``time``: every
         other agent of the same group that has a status (the other places empty).
-        Returns, per transition, whether a groupmate's episode goes on."""
-        going_on = np.zeros(len(slots), np.bool_)
+        Returns, per transition, whether a groupmate's episode goes on, and the sum of the
+        groupmates' rewards (POCA's extrinsic reward adds it)."""
+        going_on, rewards = np.zeros(len(slots), np.bool_), np.zeros(len(slots), np.float32)
         if not len(slots):
-            return going_on
+            return going_on, rewards
         st = self._status
         members = np.flatnonzero(st["valid"])
         mate = (
@@ -134,7 +137,7 @@ class Groupmates:
             self._widen(count)
         m = self.capacity
         if m == 0:
-            return going_on
+            return going_on, rewards
         if len(members) < m:  # fewer candidates than places: pad with empty ones
             members = np.pad(members, (0, m - len(members)))
             mate = np.pad(mate, ((0, 0), (0, m - mate.shape[1])))
@@ -154,7 +157,8 @@ class Groupmates:
         for name, _, _ in self._sensors:
             put(f"obs/{name}", f"obs/{name}")
             put(f"next/{name}", f"now/{name}")
-        return (present & ~st["done"][mates]).any(1)
+        rewards = np.where(present, st["reward"][mates], 0).sum(1)
+        return (present & ~st["done"][mates]).any(1), rewards
 
     def forget(self, slots: np.ndarray) -> None:
         """Agents whose episode ended (after the exchange), or whose slot was freed."""

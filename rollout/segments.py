@@ -27,6 +27,7 @@ from mlagents_envs.base_env import BehaviorSpec, DecisionSteps, TerminalSteps
 from batches import keys, specs
 from batches.segment import Segment
 from rollout.decisions import Decisions, allowed_mask
+from rollout.episode_ends import EpisodeEnds, EpisodeLog
 from rollout.groups import Groupmates
 
 INITIAL_SLOTS = 16
@@ -77,10 +78,7 @@ class SegmentBuilder:
         self._spec_dict = specs.spec_to_dict(spec)  # travels with each segment to the learner
         self.gone_after = gone_after or max(horizon, GONE_AFTER)
         self.counters = Counters()
-        self.episodes: list[tuple[np.ndarray, np.ndarray]] = []  # (returns, lengths) batches
-        # group rewards of the episodes of grouped agents that ended with their group
-        # (ML-Agents' "Environment/Group Cumulative Reward"; a sacrificed agent's is not)
-        self.group_episodes: list[np.ndarray] = []
+        self.episodes = EpisodeLog()  # for the metrics
         self._sensors = [(o.name, o.shape) for o in spec.observation_specs]
         self._pixels = frozenset(pixel_sensors)
         self._continuous = spec.action_spec.continuous_size
@@ -122,6 +120,7 @@ class SegmentBuilder:
             "idle": np.zeros(s, np.int64),
             "ep_return": np.zeros(s, np.float64),
             "ep_group": np.zeros(s, np.float64),
+            "ep_mates": np.zeros(s, np.float64),
             "ep_length": np.zeros(s, np.int64),
             "agent": np.full(s, -1, np.int64),  # agent id per slot, -1 = free
         }
@@ -160,7 +159,8 @@ class SegmentBuilder:
             chosen = free[: len(new)]
             f = self._f
             f["agent"][chosen] = ids[new]
-            for name in ("length", "idle", "ep_return", "ep_length", "ep_group", "carry"):
+            fresh = ("length", "idle", "ep_return", "ep_length", "ep_group", "ep_mates", "carry")
+            for name in fresh:
                 f[name][chosen] = 0
             for name in ("pending", "ended"):
                 f[name][chosen] = False
@@ -229,12 +229,12 @@ class SegmentBuilder:
         t = f["length"][slots]
         acted = [f[f"p_obs/{name}"][slots] for name, _ in self._sensors]
         now = [self._stored(name, v) for (name, _), v in zip(self._sensors, next_obs, strict=True)]
-        mates_play_on = np.zeros(len(slots), np.bool_)
+        mates_play_on, mates_reward = np.zeros(len(slots), np.bool_), 0.0
         if self.groups.capacity or (group > 0).any():  # none of it for behaviors sans groups
             self.groups.set_status(
                 slots, group, acted, f["p_cont"][slots], f["p_disc"][slots], now, reward, done
             )
-            mates_play_on = self.groups.record(slots, t, group)
+            mates_play_on, mates_reward = self.groups.record(slots, t, group)
         for (name, _), before, after in zip(self._sensors, acted, now, strict=True):
             f[f"obs/{name}"][slots, t] = before
             f[f"next/{name}"][slots, t] = after
@@ -251,13 +251,13 @@ class SegmentBuilder:
         f["ep_return"][slots] += reward
         f["ep_length"][slots] += 1
         f["ep_group"][slots] += group_reward
+        f["ep_mates"][slots] += mates_reward
         ended = slots[done]
         if len(ended):
-            self.episodes.append((f["ep_return"][ended].copy(), f["ep_length"][ended].copy()))
-            with_group = slots[done & (group > 0) & ~mates_play_on]
-            if len(with_group):
-                self.group_episodes.append(f["ep_group"][with_group].copy())
-            f["ep_return"][ended] = f["ep_group"][ended] = 0.0
+            columns = ("ep_return", "ep_length", "ep_group", "ep_mates")
+            with_group = ((group > 0) & ~mates_play_on)[done]
+            self.episodes.add(EpisodeEnds(*(f[name][ended] for name in columns)), with_group)
+            f["ep_return"][ended] = f["ep_group"][ended] = f["ep_mates"][ended] = 0.0
             f["ep_length"][ended] = 0
 
     def _stored(self, name: str, values: np.ndarray) -> np.ndarray:
@@ -369,18 +369,6 @@ class SegmentBuilder:
         """Recorded transitions in rows not handed out yet: ``steps == emitted_steps +
         lost_steps + reset_steps + in_progress()`` (the sample ledger, ``rollout.ledger``)."""
         return int(self._f["length"][self._f["agent"] >= 0].sum())
-
-    def drain_episodes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Returns and lengths (in decisions) of the episodes finished since the last call."""
-        episodes, self.episodes = self.episodes, []
-        if not episodes:
-            return np.zeros(0), np.zeros(0, np.int64)
-        return np.concatenate([r for r, _ in episodes]), np.concatenate([n for _, n in episodes])
-
-    def drain_group_episodes(self) -> np.ndarray:
-        """Group rewards of the grouped episodes finished since the last call."""
-        episodes, self.group_episodes = self.group_episodes, []
-        return np.concatenate(episodes) if episodes else np.zeros(0)
 
     def drop_partial(self, lesson_reset: bool = False) -> int:
         """Forget every unfinished row (the player died, or a lesson reset Unity): returns

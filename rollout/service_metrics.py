@@ -135,6 +135,16 @@ class ServiceMetrics:
                 )
         return totals
 
+    def episode_extras(self) -> dict[str, tuple[float, float]]:
+        """Per behavior, over live workers: the group rewards and the groupmates' rewards
+        within the episodes of ``episode_totals`` so far."""
+        extras: dict[str, tuple[float, float]] = {}
+        for worker in self.workers:
+            for name, stats in worker.behaviors.items():
+                group, mates = extras.get(name, (0.0, 0.0))
+                extras[name] = (group + stats.episode_group_sum, mates + stats.episode_mates_sum)
+        return extras
+
     def group_totals(self) -> dict[str, tuple[int, float]]:
         """Per behavior with groups, over live workers: (episodes that ended with their
         group, their group rewards' sum) so far."""

@@ -78,6 +78,7 @@ def test_poca_trains_on_the_group_reward_and_writes_its_tags(poca_run):
         "Policy/Extrinsic Value Estimate",
         "Policy/Extrinsic Baseline Estimate",
         "Environment/Group Cumulative Reward",
+        "Policy/Extrinsic Reward",
     ):
         assert tag in tags, tag
 

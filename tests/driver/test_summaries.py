@@ -11,16 +11,19 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from driver.summaries import Summaries
 from learners.config import parse_config
 from learners.counters import LearnerStats
+from learners.settings import TrainerSettings
 from rollout.service_metrics import ServiceMetrics, Stat, WorkerReports, merge_stats
 from rollout.service_metrics import StatsAggregationMethod as Method  # after rollout's compat
+
+
+def every_100(behavior: str) -> TrainerSettings:
+    return TrainerSettings(summary_freq=100)
 
 
 def test_summaries_follow_each_behaviors_summary_freq(tmp_path):
     config = parse_config({"behaviors": {"A": {"summary_freq": 100}, "B": {"summary_freq": 250}}})
     written: list[tuple[str, int]] = []
-    with Summaries(
-        tmp_path, lambda b: config.for_behavior(b).summary_freq, progress=False
-    ) as summaries:
+    with Summaries(tmp_path, config.for_behavior, progress=False) as summaries:
         summaries._write = lambda behavior, step, *rest: written.append((behavior, step))
         for step in range(0, 601, 50):
             progress = {
@@ -38,7 +41,7 @@ def test_a_run_whose_first_look_comes_late_still_writes_its_first_summary(tmp_pa
     past its first boundary (1,100): that summary is written at once, not skipped."""
     written: list[int] = []
     start = {"A?team=0": 1000}
-    with Summaries(tmp_path, lambda b: 100, progress=False, start_steps=start) as summaries:
+    with Summaries(tmp_path, every_100, progress=False, start_steps=start) as summaries:
         summaries._write = lambda behavior, step, *rest: written.append(step)
         for step in (1350, 1390, 1420):
             progress = {"steps": {"A?team=0": step}, "version": 0, "stats": LearnerStats()}
@@ -51,7 +54,7 @@ def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
 
     out = io.StringIO()
     console = Console(file=out, width=200)
-    with Summaries(tmp_path, lambda b: 100, progress=False, console=console) as summaries:
+    with Summaries(tmp_path, every_100, progress=False, console=console) as summaries:
         progress = {"steps": {"A?team=0": 150}, "version": 0, "stats": LearnerStats()}
         summaries.observe(ServiceMetrics(), progress, [])
     assert "A. Step: 150. Time Elapsed: " in out.getvalue()  # named as mlagents-learn names it
@@ -86,7 +89,7 @@ def test_stats_aggregate_as_mlagents_learn_does():
 
 def test_custom_stats_reach_every_behaviors_tensorboard(tmp_path):
     metrics = ServiceMetrics()
-    with Summaries(tmp_path, lambda b: 100, progress=False) as summaries:
+    with Summaries(tmp_path, every_100, progress=False) as summaries:
         for step, goals in ((60, 1.0), (120, 2.0), (180, 4.0), (240, 8.0)):
             merge_stats(metrics.unity_stats, {"Environment/Goals": Stat(Method.SUM)})
             metrics.unity_stats["Environment/Goals"].add(goals)
@@ -107,7 +110,7 @@ def test_behaviors_are_named_without_their_team_unless_two_teams_train_apart(tmp
     out = io.StringIO()
     console = Console(file=out, width=200)
     steps = {"Soccer?team=1": 100, "Soccer?team=0": 100, "Walker?team=0": 100}
-    with Summaries(tmp_path, lambda b: 100, progress=False, console=console) as summaries:
+    with Summaries(tmp_path, every_100, progress=False, console=console) as summaries:
         summaries.observe(
             ServiceMetrics(), {"steps": steps, "version": 0, "stats": LearnerStats()}, []
         )
@@ -115,3 +118,50 @@ def test_behaviors_are_named_without_their_team_unless_two_teams_train_apart(tmp
     assert lines == ["Soccer", "Soccer?team=0", "Walker"]
     folders = sorted(p.name for p in tmp_path.iterdir() if p.is_dir())
     assert folders == ["Soccer", "Soccer_team0", "Walker"]
+
+
+def test_the_extrinsic_reward_is_written_per_episode_with_group_rewards_as_mlagents_learn(
+    tmp_path,
+):
+    """``Policy/Extrinsic Reward``: each episode's rewards with its group rewards (POCA's
+    with its groupmates' rewards too), times the strength, over the episodes since the last
+    summary; not written for a behavior without the extrinsic signal."""
+    from rollout.collector import BehaviorStats, CollectorMetrics
+
+    config = parse_config(
+        {
+            "behaviors": {
+                "Ppo": {"summary_freq": 100, "reward_signals": {"extrinsic": {"strength": 0.5}}},
+                "Poca": {"trainer_type": "poca", "summary_freq": 100},
+                "Curious": {
+                    "summary_freq": 100,
+                    "reward_signals": {"curiosity": {"strength": 0.02, "gamma": 0.99}},
+                },
+            }
+        }
+    )
+    metrics = ServiceMetrics()
+    with Summaries(tmp_path, config.for_behavior, progress=False) as summaries:
+        for step, episodes in ((100, 2), (200, 6)):  # 4 more episodes in the second summary
+            stats = {
+                name: BehaviorStats(
+                    episodes=episodes,
+                    return_sum=1.0 * episodes,
+                    episode_group_sum=3.0 * episodes,
+                    episode_mates_sum=10.0 * episodes,
+                )
+                for name in ("Ppo?team=0", "Poca?team=0", "Curious?team=0")
+            }
+            metrics.workers = [CollectorMetrics(behaviors=stats)]
+            steps = dict.fromkeys(stats, step)
+            summaries.observe(metrics, {"steps": steps, "version": 0, "stats": LearnerStats()}, [])
+
+    def written(folder: str) -> list[tuple[int, float]]:
+        events = EventAccumulator(str(tmp_path / folder)).Reload()
+        if "Policy/Extrinsic Reward" not in events.Tags()["scalars"]:
+            return []
+        return [(e.step, e.value) for e in events.Scalars("Policy/Extrinsic Reward")]
+
+    assert written("Ppo") == [(100, 0.5 * 4.0), (200, 0.5 * 4.0)]  # (1 + 3) per episode
+    assert written("Poca") == [(100, 14.0), (200, 14.0)]  # 1 + 3 + 10
+    assert written("Curious") == []  # its reward_signals leave the extrinsic one out

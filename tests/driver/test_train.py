@@ -94,6 +94,7 @@ def test_a_short_run_beats_the_random_policy(trained):
     for tag in (
         "Environment/Cumulative Reward",
         "Environment/Episode Length",
+        "Policy/Extrinsic Reward",
         "Losses/Policy Loss",
         "Losses/Value Loss",
         "Policy/Entropy",

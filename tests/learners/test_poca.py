@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 from mlagents_envs.base_env import DecisionSteps, TerminalSteps
 
@@ -208,10 +209,19 @@ def test_the_group_reward_is_reported_for_the_agents_that_end_with_their_group()
     """ML-Agents' "Environment/Group Cumulative Reward": the leavers' episodes are not
     counted (their group's reward came after they left)."""
     builder = SegmentBuilder("Knights?team=0", SPEC, horizon=16)
-    group_game(3, builder=builder)
-    np.testing.assert_array_equal(builder.drain_group_episodes(), np.ones(3 * 4))
-    returns, _ = builder.drain_episodes()
-    assert len(returns) == 3 * 6
+    segments = group_game(3, builder=builder)
+    np.testing.assert_array_equal(builder.episodes.drain_group(), np.ones(3 * 4))
+    ended = builder.episodes.drain()
+    assert len(ended.returns) == 3 * 6
+    # ML-Agents' "Policy/Extrinsic Reward" of each agent episode adds the group rewards it
+    # got (the leavers none) and, under POCA, its groupmates' rewards the learner trains on
+    stayed = ended.group_rewards == 1.0
+    assert stayed.sum() == 3 * 4 and (ended.group_rewards[~stayed] == 0).all()
+    np.testing.assert_allclose(ended.returns[stayed], 0.4, rtol=1e-6)
+    np.testing.assert_allclose(ended.returns[~stayed], 0.3, rtol=1e-6)
+    mates = sum(float(s[keys.GROUPMATES, keys.REWARD].sum()) for s in segments)
+    assert mates > 0 and ended.mates_rewards.sum() == pytest.approx(mates, rel=1e-5)
+    assert (ended.mates_rewards[stayed] > ended.mates_rewards[~stayed].max()).all()
 
 
 def test_groupmates_reach_the_learner_in_the_segments_it_is_sent():
