@@ -15,8 +15,24 @@ from itertools import pairwise
 
 import numpy as np
 import torch
+from tensordict import TensorDictBase
+
+from batches import keys
 
 CARRIED_EPISODES = 65_536  # unfinished episodes kept between updates (agents mid-episode)
+
+
+def agent_key(segment: TensorDictBase) -> torch.Tensor:
+    """Each step's agent ``[N]``, unique across workers (worker and Unity id in one int64)."""
+    worker = segment.get(keys.WORKER, torch.zeros_like(segment[keys.AGENT_ID]))
+    return worker * 2**32 + segment[keys.AGENT_ID]
+
+
+def episode_ended(segment: TensorDictBase) -> torch.Tensor:
+    """Where an agent's episode ended ``[N]``: ``done`` and not a cut mid-episode."""
+    done = segment[keys.NEXT, keys.DONE].reshape(-1)
+    cut = segment.get((keys.NEXT, keys.CUT), None)
+    return done if cut is None else done & ~cut.reshape(-1)
 
 
 class EpisodeSums:

@@ -176,6 +176,7 @@ class SAC:
         self.network.update_normalization(transitions[keys.OBS].to_dict())
         if self.signals:
             self.signals.update_normalization(transitions)
+            self.signals.observe(transitions, segment)
         self.store(transitions, segment)
         before = self.received
         self.received += steps

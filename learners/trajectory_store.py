@@ -30,6 +30,7 @@ import torch
 
 from batches import keys
 from learners.devices import free_memory
+from learners.episode_sums import agent_key, episode_ended
 from learners.rewards import extrinsic_reward
 
 if TYPE_CHECKING:
@@ -189,12 +190,9 @@ class TrajectoryStore:
         if (memory := segment.get(keys.MEMORY, None)) is not None:
             fields["memory"] = memory
         if memory is not None or self.episodes:
-            worker = segment.get(keys.WORKER, torch.zeros_like(segment[keys.AGENT_ID]))
-            fields["agent"] = worker * 2**32 + segment[keys.AGENT_ID]
+            fields["agent"] = agent_key(segment)
         if self.episodes:
-            cut = segment.get((keys.NEXT, keys.CUT), None)
-            ended = fields["done"] if cut is None else fields["done"] & ~cut.reshape(-1)
-            fields["ended"] = ended
+            fields["ended"] = episode_ended(segment)
         if self.groupmates:
             mates = segment[keys.GROUPMATES]
             fields |= {"mate_obs/" + n: v for n, v in mates[keys.OBS].items()}

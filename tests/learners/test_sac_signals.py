@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import pytest
 import torch
 
 from batches import keys
@@ -92,3 +93,25 @@ def test_the_signals_train_report_and_round_trip():
     torch.testing.assert_close(
         fresh.signals.items[0].rewards(steps), sac.signals.items[0].rewards(steps)
     )
+
+
+def test_signal_rewards_are_reported_per_episode_as_they_arrive():
+    """As ML-Agents' SAC: each signal rewards the steps as they arrive and
+    ``Policy/<Signal> Reward`` is the mean per-episode sum, over episodes spanning several
+    segments; an update after which no episode ended reports none."""
+    spec = vector_spec(4, 2, ())
+    sac = build(spec)  # strength 2
+    agents = torch.arange(4).repeat_interleave(16)
+    first = segment(spec, 4, 16, seed=0)  # every row cut at a horizon: episodes go on
+    first[keys.AGENT_ID] = agents
+    first[keys.NEXT, keys.CUT] = first[keys.NEXT, keys.DONE].clone()
+    sac.add(first, torch.zeros(64, dtype=torch.int64))
+    rewards_first = sac.signals.rewards(sac.buffer.storage[:64])[:, 0]
+    assert sac.ready() and "Policy/Rnd Reward" not in sac.update(0.0)
+    second = ended(spec)  # the same agents' episodes end at their rows' last steps
+    second[keys.AGENT_ID] = agents
+    sac.add(second, torch.zeros(64, dtype=torch.int64))
+    rewards_second = sac.signals.rewards(sac.buffer.storage[64:128])[:, 0]
+    per_episode = rewards_first.reshape(4, 16).sum(1) + rewards_second.reshape(4, 16).sum(1)
+    report = sac.update(0.0)
+    assert report["Policy/Rnd Reward"] == pytest.approx(float(per_episode.mean()), rel=1e-5)
