@@ -6,11 +6,11 @@ WallJump's action space: branches (3, 3, 3, 2), the last one's second action (ju
 masked on a third of the steps, as a build masks jumping in the air. The minibatches are
 taken in order; the weights after the update must agree to float precision.
 
-Open: since our PPO clips its value loss as ML-Agents' ``trust_region_value_loss`` does,
-seeds 0 and 1 differ (up to 9e-2; seed 2 agrees to 4e-6). On ML-Agents' side here the
-value estimates stored in its buffer are up to 5 away from its critic's values at the
-first minibatch, which one and the same critic cannot give: this harness's ML-Agents side
-is suspect, not yet the loss (unclipped, ours agrees with it to 3e-4).
+ML-Agents' PPO computes its value loss with ``trust_region_value_loss`` (the value clipped
+to ``epsilon`` around the stored estimate), but in mlagents 1.1.0
+``RewardSignalUtil.value_estimates_key`` returns the returns' key: the stored "estimate" is
+the lambda-return itself, so the clipped term is never the larger and the loss is the plain
+squared error, as ours (a clipped loss differs here by up to 9e-2).
 
     .venv/bin/python benchmarks/check_ppo_branches_vs_mlagents.py --seeds 0 1 2
 """

@@ -90,19 +90,6 @@ def policy_terms(
     }
 
 
-def clipped_value_loss(
-    value: torch.Tensor, steps: Steps, epsilon: float | torch.Tensor
-) -> torch.Tensor:
-    """ML-Agents' ``trust_region_value_loss`` per step: the larger squared error of the
-    value and of the value kept within ``epsilon`` of the one before the update."""
-    error = (steps.value_target - value).square()
-    if steps.old_value is None:
-        return error
-    old = steps.old_value
-    kept = old + torch.clamp(value - old, -epsilon, epsilon)
-    return torch.max(error, (steps.value_target - kept).square())
-
-
 def actor_critic_report(mean: dict[str, float], lr: float, beta: float) -> dict[str, float]:
     """ML-Agents' names for an actor-critic loss's means over one update."""
     return {
@@ -129,19 +116,12 @@ class Steps:
     mask: torch.Tensor | None  # True = allowed
     log_prob: torch.Tensor  # [N, components], the acting policy's
     advantage: torch.Tensor  # [N]
-    value_target: torch.Tensor  # [N] (or [N, heads])
-    old_value: torch.Tensor | None = None  # as value_target: V before the update
+    value_target: torch.Tensor  # [N]
 
     @classmethod
-    def of(
-        cls,
-        rows: Rows,
-        advantage: torch.Tensor,
-        value_target: torch.Tensor,
-        old_value: torch.Tensor | None = None,
-    ) -> Steps:
+    def of(cls, rows: Rows, advantage: torch.Tensor, value_target: torch.Tensor) -> Steps:
         fields = (rows.obs, rows.continuous, rows.discrete, rows.mask, rows.log_prob)
-        return cls(*fields, advantage, value_target, old_value)
+        return cls(*fields, advantage, value_target)
 
     def __getitem__(self, index: torch.Tensor) -> Steps:
         def pick(tensor: torch.Tensor | None) -> torch.Tensor | None:
@@ -155,7 +135,6 @@ class Steps:
             self.log_prob[index],
             self.advantage[index],
             self.value_target[index],
-            pick(self.old_value),
         )
 
 
@@ -226,7 +205,7 @@ class PPO:
         advantage = (advantage - trained.mean()) / (trained.std(correction=0) + 1e-10)
 
         lr, epsilon, beta = self.schedules(progress)
-        self.step.start(self._bind(advantage, value_target, value), epsilon, beta)
+        self.step.start(self._bind(advantage, value_target), epsilon, beta)
         self.epochs(train)
         mean = self.step.means()
         h = self.settings.hyperparameters
@@ -265,26 +244,17 @@ class PPO:
                 if len(index) == h.batch_size:
                     self.step(index)
 
-    def _bind(
-        self, advantage: torch.Tensor, value_target: torch.Tensor, value: torch.Tensor
-    ) -> tuple[int, ...]:
-        """Point ``self._bound`` at the store's whole columns, with this update's advantages,
-        targets and values before it copied into buffers beside them; returns the addresses
-        a graph reads."""
+    def _bind(self, advantage: torch.Tensor, value_target: torch.Tensor) -> tuple[int, ...]:
+        """Point ``self._bound`` at the store's whole columns, with this update's advantages
+        and targets copied into buffers beside them; returns the addresses a graph reads."""
         whole, heads = self.store.whole(), 1 + len(self.signals)
         if self._targets is None or self._targets.shape[1] != len(whole):
-            shape = (1 + 2 * heads, len(whole))
+            shape = (1 + heads, len(whole))
             self._targets = torch.zeros(shape, device=self.compute.torch_device)
-        n = len(advantage)
-        self._targets[0, :n] = advantage
-        self._targets[1 : 1 + heads, :n] = value_target.reshape(n, -1).T
-        self._targets[1 + heads :, :n] = value.reshape(n, -1).T
-        targets, old = self._targets[1 : 1 + heads], self._targets[1 + heads :]
-        if heads == 1:  # [N] each, else [N, heads]
-            targets, old = targets[0], old[0]
-        else:
-            targets, old = targets.T, old.T
-        self._bound = Steps.of(whole, self._targets[0], targets, old)
+        self._targets[0, : len(advantage)] = advantage
+        self._targets[1:, : len(value_target)] = value_target.reshape(len(value_target), -1).T
+        targets = self._targets[1] if heads == 1 else self._targets[1:].T  # [N] or [N, heads]
+        self._bound = Steps.of(whole, self._targets[0], targets)
         fields = (*whole.obs.values(), whole.continuous, whole.discrete, whole.mask)
         tensors = [t for t in (*fields, whole.log_prob, self._targets) if t is not None]
         return tuple(t.data_ptr() for t in tensors)
@@ -370,14 +340,14 @@ class PPO:
     def loss(
         self, steps: Steps, epsilon: float | torch.Tensor, beta: float | torch.Tensor
     ) -> dict[str, torch.Tensor]:
-        """ML-Agents' PPO loss on a minibatch: per-component clipped surrogate, clipped squared
+        """ML-Agents' PPO loss on a minibatch: per-component clipped surrogate, squared
         value error (weight 0.5), entropy bonus (weight ``beta``); epsilon and beta may be
         0-dim tensors (a CUDA graph reads them there)."""
         log_prob, entropy, value = self.network.evaluate(
             steps.obs, steps.continuous, steps.discrete, steps.mask, self.signals.heads
         )
         terms = policy_terms(log_prob, entropy, steps, epsilon, beta)
-        value_loss = clipped_value_loss(value, steps, epsilon)
+        value_loss = (steps.value_target - value).square()
         # summed for the gradient in this order: objective, critic, entropy
         return {
             "loss_objective": terms.pop("loss_objective"),

@@ -30,7 +30,7 @@ from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
 
 from learners.minibatch import MinibatchStep
 from learners.policies import lstm_state
-from learners.ppo import PPO, VALUE_CHUNK_BYTES, Steps, clipped_value_loss, policy_terms
+from learners.ppo import PPO, VALUE_CHUNK_BYTES, Steps, policy_terms
 
 if TYPE_CHECKING:
     from learners.policies import ActorCritic
@@ -234,7 +234,7 @@ class RecurrentPPO(PPO):
         )
         steps: Steps = bound[places[real]]
         terms = policy_terms(log_prob[real], entropy[real], steps, scalars[0], scalars[1])
-        value_loss = clipped_value_loss(value[real], steps, scalars[0])
+        value_loss = (steps.value_target - value[real]).square()
         return {
             "loss_objective": terms.pop("loss_objective"),
             "loss_critic": 0.5 * value_loss.mean(),
