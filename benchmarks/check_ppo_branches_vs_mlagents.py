@@ -27,8 +27,8 @@ from check_ppo_vs_mlagents import (
     ROWS,
     anchor_workarounds,
     main,
+    mlagents_update,
     reported,
-    train_in_order,
     update_in_order,
     worst_report_difference,
 )
@@ -131,13 +131,10 @@ def mlagents(case: Path, anchor: Path) -> float:
     import torch
     import yaml
     from mlagents.plugins.trainer_type import register_trainer_plugins
-    from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
     from mlagents.trainers.policy.torch_policy import TorchPolicy
     from mlagents.trainers.ppo.optimizer_torch import TorchPPOOptimizer
     from mlagents.trainers.settings import RunOptions
     from mlagents.trainers.torch_entities.networks import SimpleActor
-    from mlagents.trainers.trainer.trainer_utils import get_gae
-    from mlagents.trainers.trajectory import ObsUtil
 
     d = np.load(case)
     register_trainer_plugins()
@@ -158,40 +155,7 @@ def mlagents(case: Path, anchor: Path) -> float:
             state[f"{ML_BRANCH.format(index)}.{part}"] = torch.from_numpy(rows)
     policy.actor.load_state_dict(state)
 
-    update, (count, horizon) = AgentBuffer(), d["reward"].shape
-    obs_key, next_key = ObsUtil.get_name_at(0), ObsUtil.get_name_at_next(0)
-    for row in range(count):
-        trajectory, done = AgentBuffer(), bool(d["ends"][row])
-        for t in range(horizon):
-            trajectory[obs_key].append(d["obs"][row, t])
-            trajectory[next_key].append(d["obs"][row, t + 1])
-            trajectory[BufferKey.ENVIRONMENT_REWARDS].append(d["reward"][row, t])
-            trajectory[BufferKey.DISCRETE_ACTION].append(d["action"][row, t])
-            trajectory[BufferKey.CONTINUOUS_ACTION].append(np.zeros(0, np.float32))
-            trajectory[BufferKey.DISCRETE_LOG_PROBS].append(d["log_prob"][row, t])
-            trajectory[BufferKey.CONTINUOUS_LOG_PROBS].append(np.zeros(0, np.float32))
-            trajectory[BufferKey.ACTION_MASK].append(d["allowed"][row, t].astype(np.float32))
-            trajectory[BufferKey.MASKS].append(1.0)
-            trajectory[BufferKey.DONE].append(done and t == horizon - 1)
-        values, value_next, _ = optimizer.get_trajectory_value_estimates(
-            trajectory, [d["obs"][row, horizon]], done
-        )
-        advantages = []
-        for name, signal in optimizer.reward_signals.items():
-            trajectory[RewardSignalUtil.value_estimates_key(name)].extend(values[name])
-            advantage = get_gae(
-                rewards=signal.evaluate(trajectory) * signal.strength,
-                value_estimates=values[name],
-                value_next=value_next[name],
-                gamma=signal.gamma,
-                lambd=settings.hyperparameters.lambd,
-            )
-            trajectory[RewardSignalUtil.returns_key(name)].set(advantage + values[name])
-            trajectory[RewardSignalUtil.advantage_key(name)].set(advantage)
-            advantages.append(advantage)
-        trajectory[BufferKey.ADVANTAGES].set(list(np.mean(advantages, axis=0)))
-        trajectory.resequence_and_append(update, training_length=policy.sequence_length)
-    figures = train_in_order(update, optimizer, settings.hyperparameters)
+    figures = mlagents_update(policy, optimizer, settings, dict(d), d["log_prob"])
 
     rows = []
     after_actor = policy.actor.state_dict()

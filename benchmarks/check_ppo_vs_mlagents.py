@@ -231,7 +231,9 @@ def mlagents_ppo(config: Path, behavior: str) -> tuple[Any, Any, Any]:
 def mlagents_update(
     policy: Any, optimizer: Any, settings: Any, rows: dict[str, np.ndarray], log_prob: Any
 ) -> dict[str, float]:
-    """One update of ML-Agents' PPO on ``rows`` (as ``buffer``'s), each row one trajectory
+    """One update of ML-Agents' PPO on ``rows`` (as ``buffer``'s; an action and a
+    log-probability per branch where they have a branch axis, ``allowed`` masks if given),
+    each row one trajectory
     as its trainer's ``_process_trajectory`` takes it (value estimates, every reward
     signal's rewards times its strength, GAE with its gamma, the signals' advantages
     averaged), then ``train_in_order``; its figures."""
@@ -247,11 +249,12 @@ def mlagents_update(
             trajectory[obs_key].append(rows["obs"][row, t])
             trajectory[next_key].append(rows["obs"][row, t + 1])
             trajectory[BufferKey.ENVIRONMENT_REWARDS].append(rows["reward"][row, t])
-            trajectory[BufferKey.DISCRETE_ACTION].append(np.array([rows["action"][row, t]]))
+            trajectory[BufferKey.DISCRETE_ACTION].append(np.atleast_1d(rows["action"][row, t]))
             trajectory[BufferKey.CONTINUOUS_ACTION].append(np.zeros(0, np.float32))
-            trajectory[BufferKey.DISCRETE_LOG_PROBS].append(log_prob[row, t : t + 1])
+            trajectory[BufferKey.DISCRETE_LOG_PROBS].append(np.atleast_1d(log_prob[row, t]))
             trajectory[BufferKey.CONTINUOUS_LOG_PROBS].append(np.zeros(0, np.float32))
-            trajectory[BufferKey.ACTION_MASK].append(np.ones(BRANCH, np.float32))
+            allowed = rows["allowed"][row, t] if "allowed" in rows else np.ones(BRANCH)
+            trajectory[BufferKey.ACTION_MASK].append(allowed.astype(np.float32))
             trajectory[BufferKey.MASKS].append(1.0)
             trajectory[BufferKey.DONE].append(done and t == horizon - 1)
         values, value_next, _ = optimizer.get_trajectory_value_estimates(
