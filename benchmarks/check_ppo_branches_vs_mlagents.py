@@ -28,6 +28,7 @@ from check_ppo_vs_mlagents import (
     anchor_workarounds,
     main,
     mlagents_update,
+    packed_steps,
     reported,
     update_in_order,
     worst_report_difference,
@@ -74,8 +75,6 @@ def buffer(seed: int, horizon: int) -> dict[str, np.ndarray]:
 def ours(seed: int, out: Path) -> None:
     import torch
 
-    from batches import keys
-    from batches.specs import spec_to_dict, step_spec
     from learners.config import load_config
     from learners.policies import ActorCritic
     from learners.ppo import PPO
@@ -88,25 +87,7 @@ def ours(seed: int, out: Path) -> None:
     initial = {k: v.detach().clone().numpy() for k, v in network.state_dict().items()}
     data = buffer(seed, horizon)
     n = ROWS * horizon
-    last = np.zeros((ROWS, horizon), bool)
-    last[:, -1] = True
-    terminated = last & data["ends"][:, None]
-    steps = step_spec(spec).expand(n).zero()
-    steps[keys.OBS, "v"] = torch.from_numpy(data["obs"][:, :-1].reshape(n, OBS_SIZE))
-    steps[keys.NEXT, keys.OBS, "v"] = torch.from_numpy(data["obs"][:, 1:].reshape(n, OBS_SIZE))
-    steps[keys.NEXT, keys.REWARD] = torch.from_numpy(data["reward"].reshape(n, 1))
-    steps[keys.NEXT, keys.DONE] = torch.from_numpy(last.reshape(n, 1))
-    steps[keys.NEXT, keys.TERMINATED] = torch.from_numpy(terminated.reshape(n, 1))
-    steps[keys.NEXT, keys.TRUNCATED] = torch.from_numpy((last & ~terminated).reshape(n, 1))
-    actions = torch.from_numpy(data["action"].reshape(n, len(BRANCHES)))
-    mask = torch.from_numpy(data["allowed"].reshape(n, -1))
-    steps[keys.ACTION, keys.DISCRETE] = actions
-    steps[keys.ACTION_MASK] = mask
-    with torch.no_grad():
-        log_prob, _, _ = network.evaluate({"v": steps[keys.OBS, "v"]}, None, actions, mask)
-    steps[keys.LOG_PROB] = log_prob
-    steps.set_non_tensor(keys.BEHAVIOR, f"{BEHAVIOR}?team=0")
-    steps.set_non_tensor(keys.SPEC, spec_to_dict(spec))
+    steps, log_prob = packed_steps(spec, data, network)
     ppo = PPO(network, settings)
     ppo.add(steps, torch.zeros(n, dtype=torch.int64))
     report = update_in_order(ppo)

@@ -77,14 +77,16 @@ def packed_steps(
 ) -> tuple[Any, Any]:
     """Our packed steps of ``data``'s rows (``obs`` one longer than each row: the last is
     what follows it), each row ending at its last step, terminated where ``ends``, acted
-    by ``network`` (its log-probabilities, also returned) at ``version``."""
+    by ``network`` (its log-probabilities, also returned) at ``version``; an action per
+    branch where ``action`` has a branch axis, and ``allowed`` masks if given."""
     import torch
 
     from batches import keys
     from batches.specs import log_prob_size, spec_to_dict, step_spec
 
     rows, horizon = data["reward"].shape
-    size, branch, n = data["obs"].shape[-1], spec.action_spec.discrete_branches[0], rows * horizon
+    size, n = data["obs"].shape[-1], rows * horizon
+    width = sum(spec.action_spec.discrete_branches)
     last = np.zeros((rows, horizon), bool)
     last[:, -1] = True
     terminated = last & data["ends"][:, None]
@@ -95,12 +97,20 @@ def packed_steps(
     steps[keys.NEXT, keys.DONE] = torch.from_numpy(last.reshape(n, 1))
     steps[keys.NEXT, keys.TERMINATED] = torch.from_numpy(terminated.reshape(n, 1))
     steps[keys.NEXT, keys.TRUNCATED] = torch.from_numpy((last & ~terminated).reshape(n, 1))
-    steps[keys.ACTION, keys.DISCRETE] = torch.from_numpy(data["action"].reshape(n, 1))
-    steps[keys.ACTION_MASK] = torch.ones(n, branch, dtype=torch.bool)
+    steps[keys.ACTION, keys.DISCRETE] = torch.from_numpy(data["action"].reshape(n, -1))
+    allowed = data.get("allowed")
+    steps[keys.ACTION_MASK] = (
+        torch.ones(n, width, dtype=torch.bool)
+        if allowed is None
+        else torch.from_numpy(allowed.reshape(n, width))
+    )
     steps[keys.POLICY_VERSION] = torch.full((n,), version, dtype=torch.int64)
     with torch.no_grad():
         log_prob, _, _ = network.evaluate(
-            {"v": steps[keys.OBS, "v"]}, None, steps[keys.ACTION, keys.DISCRETE]
+            {"v": steps[keys.OBS, "v"]},
+            None,
+            steps[keys.ACTION, keys.DISCRETE],
+            None if allowed is None else steps[keys.ACTION_MASK],
         )
     assert log_prob.shape[-1] == log_prob_size(spec)
     steps[keys.LOG_PROB] = log_prob
