@@ -90,18 +90,12 @@ def main() -> None:
     case = Case(f"{args.env}-curriculum", args.env, args.config, None, (), args.seconds)
     build = build_player(args.env, work)
     config = CONFIGS / args.config
-    runs = {}
-    threads = [
+    threads = [  # each run writes its own TensorBoard folders, read below
         threading.Thread(
-            target=lambda: runs.__setitem__(
-                "mlagents-learn",
-                anchor_run(case, args.seed, build, config, args.anchor, work, 31500),
-            )
+            target=anchor_run, args=(case, args.seed, build, config, args.anchor, work, 31500)
         ),
         threading.Thread(
-            target=lambda: runs.__setitem__(
-                "ours", our_run(case, args.seed, build, config, OURS_MLAGENTS, work, None)
-            )
+            target=our_run, args=(case, args.seed, build, config, OURS_MLAGENTS, work, None)
         ),
     ]
     for thread in threads:

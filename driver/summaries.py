@@ -221,8 +221,10 @@ class Summaries:
             line = (
                 f"Mean Reward: {window.last_reward:.3f}. Episode Length: {window.last_length:.1f}."
             )
+            extras = metrics.episode_extras().get(behavior, window.extras)
             gained = (return_sum - window.return_sum, new)
-            self._extrinsic_reward(writer, behavior, step, gained, metrics)
+            self._extrinsic_reward(writer, behavior, step, gained, extras)
+            window.extras = extras
             line += self._group_reward(writer, behavior, step, window, metrics)
             if elo := window.losses.get("Self-play/ELO"):  # as mlagents-learn's line
                 line += f" ELO: {elo[-1]:.3f}."
@@ -235,7 +237,6 @@ class Summaries:
             )
         if totals is not None:
             window.episodes, window.return_sum, window.length_sum = totals
-            window.extras = metrics.episode_extras().get(behavior, window.extras)
         for key, values in window.losses.items():
             writer.add_scalar(key, sum(values) / len(values), step)
         window.losses = {}
@@ -261,16 +262,17 @@ class Summaries:
         behavior: str,
         step: int,
         gained: tuple[float, int],
-        metrics: ServiceMetrics,
+        extras: tuple[float, float],
     ) -> None:
         """ML-Agents' ``Policy/Extrinsic Reward``: over the episodes since the last summary,
         the mean of each one's rewards with its group rewards (under POCA with its
-        groupmates' rewards too), times the signal's strength; none without the signal."""
+        groupmates' rewards too), times the signal's strength; none without the signal.
+        ``extras``: the group and groupmates' rewards within all episodes so far."""
         settings, window = self.settings(behavior), self.windows[behavior]
         if not settings.reward_strength:
             return
         returns, episodes = gained
-        group, mates = metrics.episode_extras().get(behavior, window.extras)
+        group, mates = extras
         total = returns + group - window.extras[0]
         if settings.trainer_type == "poca":
             total += mates - window.extras[1]
