@@ -9,12 +9,14 @@ from pathlib import Path
 
 import onnx
 import pytest
+import torch
 import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from driver.options import TrainOptions
 from driver.run_dir import TrainingError
 from driver.train import train
+from learners import checkpoint
 from learners.export import export_checkpoint
 
 pytestmark = pytest.mark.integration
@@ -75,8 +77,10 @@ def test_mlagents_sac_hallway_config_trains_with_memory(ray_session, tmp_path):
     config.write_text(yaml.safe_dump(data))
     result = train(options(tmp_path, config, run_id="sac", max_steps=2_100))
     assert not result.interrupted and result.steps["Hallway?team=0"] >= 2_100
-    scalars = EventAccumulator(str(result.run_dir / "Hallway")).Reload().Scalars
-    assert any(e.value > 0 for e in scalars("Policy/Gradient Steps"))  # on sequences
-    assert all(e.value == e.value for e in scalars("Losses/Q1 Loss"))  # no NaN
+    # the final checkpoint, not TensorBoard: on a loaded machine the updates' reports can
+    # come after the run's last summary
+    trained = checkpoint.load(result.checkpoint)["behaviors"]["Hallway?team=0"]["algorithm"]
+    assert trained["gradient_steps"] > 0  # on sequences
+    assert all(bool(torch.isfinite(w).all()) for w in trained["q"].values())  # no NaN
     (exported,) = export_checkpoint(result.run_dir)
     assert [i.name for i in onnx.load(str(exported)).graph.input][-1] == "recurrent_in"
