@@ -91,6 +91,17 @@ CASES = (
     # same config without memory, to show what it does
     Case("Hallway-PPO-memory", "Hallway", "ppo_Hallway.yaml", None, (), 1800, held=3),
     Case("Hallway-PPO-no-memory", "Hallway", "ppo_Hallway_nomemory.yaml", None, (), 1800, held=3),
+    # a sparse reward behind a wall: whether and when the policy first finds the goal
+    # varies from seed to seed in both trainers (SmallWallJump: no wall or a small one)
+    Case(
+        "SmallWallJump-PPO",
+        "WallJump",
+        "ppo_WallJump.yaml",
+        None,
+        (0.5,),
+        480,
+        behavior="SmallWallJump",
+    ),
     # self-play, ML-Agents' configs: ELO, to the level mlagents-learn ends its run at
     Case("SoccerTwos-POCA", "SoccerTwos", "poca_SoccerTwos.yaml", None, (), 900, "elo"),
     Case(
