@@ -5,7 +5,8 @@ update reports and never touches segment data.
 Tags (docs/training.md lists them all): ``Environment/Cumulative Reward`` and
 ``Environment/Episode Length`` (episodes finished since the last summary),
 ``Environment/Lesson Number/<parameter>`` (each curriculum's lesson),
-``Losses/*`` and ``Policy/*`` (means over the updates since the last summary),
+``Losses/*`` and ``Policy/*`` (means over the updates since the last summary; at the
+run's end, those of the updates no summary took, at the final step),
 ``Health/*`` (Unity restarts, dropped steps, policy lag), ``Perf/*`` (agent steps per
 second collected, samples per second consumed by the learner), and Unity's custom
 statistics (``StatsRecorder``) under their own names in every behavior's folder, as
@@ -179,6 +180,25 @@ class Summaries:
             self.console.print(f"faults: {_faults_text(faults)}", soft_wrap=True, highlight=False)
             self._faults = faults
 
+    def last_updates(
+        self, reports: list[tuple[str, int, dict[str, float]]], steps: Mapping[str, int]
+    ) -> None:
+        """At the run's end: the update metrics no summary took (updates after the last
+        one, or a short run's updates that all came after it), written at each behavior's
+        final step, so that TensorBoard has every update."""
+        for behavior, _, report in reports:
+            window = self._window(behavior, steps.get(behavior, 0))
+            for key, value in report.items():
+                window.losses.setdefault(key, []).append(value)
+        for behavior, window in self.windows.items():
+            if not window.losses:
+                continue
+            writer = self._writer(behavior)
+            for key, values in window.losses.items():
+                writer.add_scalar(key, sum(values) / len(values), steps.get(behavior, 0))
+            window.losses = {}
+            writer.flush()
+
     def name(self, behavior: str) -> str:
         """The behavior without its team, as mlagents-learn names a trainer; a second
         behavior of that name (its teams trained apart) keeps its team."""
@@ -195,6 +215,12 @@ class Summaries:
             )
         return self.windows[behavior]
 
+    def _writer(self, behavior: str) -> ScalarWriter:
+        if behavior not in self.writers:
+            folder = self.run_dir / behavior_folder(self.name(behavior))
+            self.writers[behavior] = ScalarWriter(str(folder))
+        return self.writers[behavior]
+
     def _write(
         self,
         behavior: str,
@@ -203,11 +229,7 @@ class Summaries:
         totals: tuple[int, float, int] | None,
         metrics: ServiceMetrics,
     ) -> None:
-        writer = self.writers.get(behavior)
-        if writer is None:
-            writer = self.writers[behavior] = ScalarWriter(
-                str(self.run_dir / behavior_folder(self.name(behavior)))
-            )
+        writer = self._writer(behavior)
         episodes, return_sum, length_sum = totals or (window.episodes, 0.0, 0)
         new = episodes - window.episodes
         line = "No episode was completed since last summary."  # mlagents-learn's words

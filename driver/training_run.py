@@ -196,6 +196,7 @@ class TrainingRun:
         # what the final checkpoint holds: the loop's last progress may predate submissions
         # still queued at the learner (its status calls do not wait for them)
         steps = {name: int(b["steps"]) for name, b in state["behaviors"].items()}
+        self.summaries.last_updates(ray.get(self.keeper.learner.drain_reports.remote()), steps)
         latest = self.summaries.latest()
         startup = startup_times(first_steps(self.service), self.summaries.first_reward_at)
         self._stack.close()  # the service stopped: its ledger closed every incarnation

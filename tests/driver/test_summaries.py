@@ -61,6 +61,25 @@ def test_a_summary_without_finished_episodes_still_prints_its_step(tmp_path):
     assert "No episode was completed since last summary." in out.getvalue()
 
 
+def test_updates_no_summary_took_are_written_at_the_runs_end(tmp_path):
+    """A short run past its last summary before the learner's first update (its steps
+    counted while the learner was still starting): the update is written at the end, at
+    the final step, and an update a summary already took is not written twice."""
+    with Summaries(tmp_path, every_100, progress=False, console=Console(file=io.StringIO())) as s:
+        stats = LearnerStats()
+        s.observe(ServiceMetrics(), {"steps": {"A?team=0": 120}, "stats": stats}, [])
+        taken = [("A?team=0", 120, {"Losses/Q1 Loss": 4.0})]
+        s.observe(ServiceMetrics(), {"steps": {"A?team=0": 210}, "stats": stats}, taken)
+        late = [
+            ("A?team=0", 230, {"Losses/Q1 Loss": 1.0}),
+            ("A?team=0", 250, {"Losses/Q1 Loss": 2.0}),
+        ]
+        s.last_updates(late, {"A?team=0": 260})
+        s.last_updates([], {"A?team=0": 260})  # nothing left: nothing written
+    scalars = EventAccumulator(str(tmp_path / "A")).Reload().Scalars("Losses/Q1 Loss")
+    assert [(e.step, e.value) for e in scalars] == [(210, 4.0), (260, 1.5)]
+
+
 def test_stats_aggregate_as_mlagents_learn_does():
     stats = WorkerReports()
     for worker in (0, 1):
