@@ -162,10 +162,7 @@ class Summaries:
                 "busy": busy / (now - then),
             }
             self._last_rate = (now, total, stats.samples, stats.update_seconds)
-        for behavior, _, report in reports:
-            window = self._window(behavior, progress["steps"].get(behavior, 0))
-            for key, value in report.items():
-                window.losses.setdefault(key, []).append(value)
+        self._fold(reports, progress["steps"])
         unity_stats = metrics.drain_unity_stats()
         totals = metrics.episode_totals()
         for behavior, step in progress["steps"].items():
@@ -186,18 +183,28 @@ class Summaries:
         """At the run's end: the update metrics no summary took (updates after the last
         one, or a short run's updates that all came after it), written at each behavior's
         final step, so that TensorBoard has every update."""
+        self._fold(reports, steps)
+        for behavior, window in self.windows.items():
+            if window.losses:
+                writer = self._writer(behavior)
+                self._write_updates(writer, window, steps.get(behavior, 0))
+                writer.flush()
+
+    def _fold(
+        self, reports: list[tuple[str, int, dict[str, float]]], steps: Mapping[str, int]
+    ) -> None:
+        """Each update's metrics into its behavior's window, until a summary writes them."""
         for behavior, _, report in reports:
             window = self._window(behavior, steps.get(behavior, 0))
             for key, value in report.items():
                 window.losses.setdefault(key, []).append(value)
-        for behavior, window in self.windows.items():
-            if not window.losses:
-                continue
-            writer = self._writer(behavior)
-            for key, values in window.losses.items():
-                writer.add_scalar(key, sum(values) / len(values), steps.get(behavior, 0))
-            window.losses = {}
-            writer.flush()
+
+    @staticmethod
+    def _write_updates(writer: ScalarWriter, window: _Window, step: int) -> None:
+        """The means of the window's update metrics at ``step``; the window starts anew."""
+        for key, values in window.losses.items():
+            writer.add_scalar(key, sum(values) / len(values), step)
+        window.losses = {}
 
     def name(self, behavior: str) -> str:
         """The behavior without its team, as mlagents-learn names a trainer; a second
@@ -259,9 +266,7 @@ class Summaries:
             )
         if totals is not None:
             window.episodes, window.return_sum, window.length_sum = totals
-        for key, values in window.losses.items():
-            writer.add_scalar(key, sum(values) / len(values), step)
-        window.losses = {}
+        self._write_updates(writer, window, step)
         for key, stat in window.unity_stats.items():
             writer.add_scalar(key, stat.value, step)
             if stat.values:

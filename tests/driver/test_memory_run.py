@@ -83,6 +83,7 @@ def test_mlagents_sac_hallway_config_trains_with_memory(ray_session, tmp_path):
     assert trained["gradient_steps"] > 0  # on sequences
     scalars = EventAccumulator(str(result.run_dir / "Hallway")).Reload().Scalars
     assert any(e.value > 0 for e in scalars("Policy/Gradient Steps"))  # the last ones too
+    assert all(e.value == e.value for e in scalars("Losses/Q1 Loss"))  # no NaN
     assert all(bool(torch.isfinite(w).all()) for w in trained["q"].values())  # no NaN
     (exported,) = export_checkpoint(result.run_dir)
     assert [i.name for i in onnx.load(str(exported)).graph.input][-1] == "recurrent_in"
