@@ -1,10 +1,13 @@
-"""What ``--collect-ahead`` costs in samples: ``unity-rollout train`` on unitysim 3DBall
-(``config/3DBall.yaml``), each seed once without and once with it, interleaved; each run
-stops (SIGTERM) at its first summary with mean reward >= 90 and reports that summary's step
-and wall time.
+"""What collecting past the learner's demand costs in samples: ``unity-rollout train`` on
+unitysim 3DBall (``config/3DBall.yaml``), each seed once without ``--collect-ahead`` and once
+with it, interleaved; each run stops (SIGTERM) at its first summary with mean reward >= 90
+and reports that summary's step and wall time. ``--base-tree DIR``: instead, each seed once
+with the code in DIR (a checkout of another commit) and once with this one, both with
+``--collect-ahead`` N (0 by default): what a change of the service's own rule costs.
 
     .venv/bin/python benchmarks/bench_ahead.py --ahead 2400 --seeds 0 1 2 3 [--workers 2]
         [--delay-ms 0] [--json out.json]
+    .venv/bin/python benchmarks/bench_ahead.py --base-tree /tmp/base --workers 16 --delay-ms 40
 """
 
 from __future__ import annotations
@@ -28,15 +31,17 @@ ROOT = Path(__file__).resolve().parent.parent
 REWARD = re.compile(r"Step: (\d+)\. Time Elapsed: [\d.]+ s\. Mean Reward: ([\d.-]+)\.")
 
 
-def run(ahead: int, seed: int, args: argparse.Namespace) -> dict[str, Any]:
+def run(side: str, ahead: int, seed: int, args: argparse.Namespace) -> dict[str, Any]:
+    """One training run; ``side``: "this" tree or "base" (``--base-tree``)."""
+    tree = args.base_tree.resolve() if side == "base" else ROOT
     command = [sys.executable, "-m", "driver.cli", "train", "--no-progress", "--seed", str(seed)]
     command += ["--workers", str(args.workers), "--collect-ahead", str(ahead)]
     command += ["--results-dir", tempfile.mkdtemp(prefix="bench-ahead-")]
     command += ["--max-steps", str(args.max_steps), "--max-seconds", str(args.max_seconds)]
-    env = {**os.environ, "UNITYSIM_DELAY_MS": str(args.delay_ms)}
+    env = {**os.environ, "UNITYSIM_DELAY_MS": str(args.delay_ms), "PYTHONPATH": str(tree)}
     started = time.monotonic()
     driver = subprocess.Popen(
-        command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        command, cwd=tree, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
     reached = None
     assert driver.stdout is not None
@@ -45,12 +50,19 @@ def run(ahead: int, seed: int, args: argparse.Namespace) -> dict[str, Any]:
         if match and reached is None and float(match[2]) >= 90:
             reached = {"step": int(match[1]), "seconds": round(time.monotonic() - started, 1)}
             driver.send_signal(signal.SIGTERM)  # stops with a checkpoint, exit 0
-    return {"ahead": ahead, "seed": seed, "reached_90": reached, "exit": driver.wait()}
+    return {
+        "side": side,
+        "ahead": ahead,
+        "seed": seed,
+        "reached_90": reached,
+        "exit": driver.wait(),
+    }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--ahead", type=int, default=2400)
+    parser.add_argument("--ahead", type=int, help="default: 2400, or 0 with --base-tree")
+    parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run beside")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--delay-ms", type=float, default=0.0)
@@ -58,19 +70,26 @@ def main() -> None:
     parser.add_argument("--max-seconds", type=float, default=600.0, help="a safety stop")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
+    if args.base_tree:
+        ahead = args.ahead or 0
+        sides = {"base": ("base", ahead), "this": ("this", ahead)}
+    else:
+        ahead = 2400 if args.ahead is None else args.ahead
+        sides = {"without": ("this", 0), "with": ("this", ahead)}
     runs = []
     for seed in args.seeds:
-        for ahead in (0, args.ahead):
-            runs.append(run(ahead, seed, args))
+        for label, (side, steps_ahead) in sides.items():
+            runs.append({"label": label, **run(side, steps_ahead, seed, args)})
             print(json.dumps(runs[-1]), flush=True)
     steps = {
-        ahead: [r["reached_90"]["step"] for r in runs if r["ahead"] == ahead and r["reached_90"]]
-        for ahead in (0, args.ahead)
+        label: [r["reached_90"]["step"] for r in runs if r["label"] == label and r["reached_90"]]
+        for label in sides
     }
-    medians = {a: statistics.median(s) if s else None for a, s in steps.items()}
+    medians = {label: statistics.median(s) if s else None for label, s in steps.items()}
     print(f"median steps to 90: {medians}")
-    if all(medians.values()):
-        print(f"with / without: {medians[args.ahead] / medians[0]:.2f}")
+    first, second = sides
+    if medians[first] and medians[second]:
+        print(f"{second} / {first}: {medians[second] / medians[first]:.2f}")
     if args.json:
         args.json.write_text(json.dumps({"machine": machine(), "runs": runs, "medians": medians}))
 

@@ -1,9 +1,10 @@
 """Scaling at real Unity speed: unitysim 3DBall answering every exchange ``--delay-ms`` late
 (as a build at 1000/D exchanges per second), collected by 1, 2, 4, 8 and 16 Ray workers,
 once into the counting learner (``driver/counting_learner.py``: routing only) and once into the
-real central learner (PPO, ``config/3DBall.yaml``), once as mlagents-learn's environments
-wait for each update and once collecting through it (``ppo+ahead``: ``--collect-ahead``
-of one buffer).
+real central learner (PPO, ``config/3DBall.yaml``), once with the service's default (workers
+wait for each update, as mlagents-learn's environments do, while their rows in progress
+fit in a buffer: ``rollout/demand.py``) and once collecting through it (``ppo+ahead``:
+``--collect-ahead`` of one buffer, or ``--ahead`` steps).
 
 The runs are interleaved: each round goes through every worker count, and at each count
 both learners, so the machine's load falls on all of them alike; each keeps its best round.
@@ -111,7 +112,7 @@ def one_run(
         factory = policy_factory(config)
         settings = config.for_behavior("3DBall")
         horizon = settings.time_horizon
-        ahead = settings.hyperparameters.buffer_size if kind == "ppo+ahead" else 0
+        ahead = (args.ahead or settings.hyperparameters.buffer_size) if kind == "ppo+ahead" else 0
     service_config = ServiceConfig(
         unity,
         num_workers=workers,
@@ -205,6 +206,7 @@ def main() -> None:
         default=0.0,
         help="instead: one run per learner and worker count this long, memory each minute",
     )
+    parser.add_argument("--ahead", type=int, help="ppo+ahead's steps ahead (default: a buffer)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
 

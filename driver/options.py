@@ -199,8 +199,9 @@ class TrainOptions:
         0,
         "on-policy (PPO): steps workers may collect past what the learner's next update "
         "needs, acted by the weights that update replaces; keeps many workers busy through "
-        "updates (0: they wait for the new weights, as mlagents-learn's environments do; "
-        "a behavior with threaded: true raises it to its buffer_size)",
+        "updates (0: they wait for the new weights, as mlagents-learn's environments do, "
+        "unless their rows in progress hold more than a buffer; a behavior with "
+        "threaded: true raises it to its buffer_size)",
         check=at_least(0),
     )
     no_graphics: bool = option(

@@ -16,7 +16,8 @@ Demand: ``submit`` also answers how many more steps the learner wants before its
 update of an on-policy behavior (PPO), or None. While steps already in flight cover that
 demand, idle workers wait for the new weights instead of acting with old ones: each
 update then trains on data of the policy it improves, as in mlagents-learn's synchronous
-loop. ``collect_ahead`` lets workers go on past the demand, through the update, with the
+loop, unless the workers' rows in progress hold more than a buffer (``rollout/demand.py``).
+``collect_ahead`` lets workers go on past the demand, through the update, with the
 weights it replaces. Off-policy and V-trace learners answer None and keep every worker busy.
 """
 
@@ -24,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -34,6 +34,7 @@ from ray.exceptions import ObjectLostError, RayActorError, RayError, RayTaskErro
 
 from batches.contracts import ActorFactory
 from batches.parameters import Assignment, Values
+from rollout.demand import Demand, share
 from rollout.horizons import Horizons
 from rollout.ledger import LEARNER_RESTART, SHUTDOWN, WORKER_DEATH, Ledger, steps_of
 from rollout.membership import Membership
@@ -72,7 +73,7 @@ class RolloutService(WorkerSupervision):
         # per submission: (worker, incarnation, steps per behavior), for demand and ledger
         self._books: dict[ray.ObjectRef, tuple[int, str, dict[str, int]]] = {}
         self.ledger = Ledger()
-        self._wanted: int | None = None  # the learner's last answer: steps before its update
+        self.demand = Demand()
         self._failures: list[int] = []  # consecutive failed collects per worker
         self._restarting: dict[int, float] = {}  # worker index -> when it went away
         self._counted_unseen: set[int] = set()  # restarts WeightsLost counted before arrival
@@ -120,9 +121,10 @@ class RolloutService(WorkerSupervision):
         if self.config.await_learner_weights:
             self._weights_ref = self.learner.weights.remote()
             self._version = int(ray.get(self._weights_ref)[0])
-            self._wanted = ray.get(first)[1]
+            self.demand.answered(ray.get(first)[1])
         else:  # answered whenever the learner is up, like any submission
-            self._version, self._wanted = 0, None
+            self._version = 0
+            self.demand.answered(None)
             self._submits.append(first)
         self._worker_version = [0] * len(self.workers)
         self._failures = [0] * len(self.workers)
@@ -202,22 +204,21 @@ class RolloutService(WorkerSupervision):
         idle = [i for i in self._idle if i not in self._retry_at]
         if not idle:
             return
-        if self._wanted is None:
+        if self.demand.wanted is None:
             for index in idle:
                 self._issue(index)
             self._idle.difference_update(idle)
             return
-        if self._wanted == 0:
+        if self.demand.wanted == 0:
             return  # the learner has every step the run needs: none ahead either
         coming = sum(steps for _, steps in self._collects.values())
         coming += sum(sum(steps.values()) for _, _, steps in self._books.values())
-        missing = self._wanted + self.config.collect_ahead - coming
+        missing = self.demand.missing(coming, self.live(), self.config.collect_ahead)
         if missing <= 0:
             return  # in flight already fills the next update: wait for its weights
-        # at least a row's worth each: rows arrive whole, so a smaller ask only adds round trips
-        share = max(math.ceil(missing / len(idle)), Horizons.of(self.config.horizon).shortest)
+        each = share(missing, len(idle), Horizons.of(self.config.horizon).shortest)
         for index in idle:
-            self._issue(index, share)
+            self._issue(index, each)
         self._idle.difference_update(idle)
 
     def step(self, timeout: float = 60.0) -> int:
@@ -255,6 +256,7 @@ class RolloutService(WorkerSupervision):
             # it died idle and new weights reached its new incarnation: no call failed
             self.metrics.worker_restarts += 1
             log.warning("worker %d was restarted by Ray while idle", index)
+        self.demand.rows_seen(index, segments.counts)
         if ref in self._stale:  # weights the restored learner never had: drop
             self._stale.discard(ref)
             self.ledger.book(index, segments.incarnation, steps_of(segments), LEARNER_RESTART)
@@ -312,7 +314,7 @@ class RolloutService(WorkerSupervision):
         for ref, (version, wanted) in zip(done, answers, strict=True):
             if ref in self._books:
                 self.ledger.book(*self._books.pop(ref), "delivered")
-            self._wanted = wanted
+            self.demand.answered(wanted)
             if version > self._version:
                 self._version = version
                 self._weights_ref = self.learner.weights.remote()
@@ -345,7 +347,7 @@ class RolloutService(WorkerSupervision):
         self.learner = learner
         self._weights_ref = learner.weights.remote()
         self._version = int(ray.get(self._weights_ref)[0])
-        self._wanted = ray.get(learner.submit.remote([]))[1]
+        self.demand.answered(ray.get(learner.submit.remote([]))[1])
 
     def ask_learner(self) -> None:
         """Have the learner state its version and demand now, not with the next delivery:

@@ -1,11 +1,14 @@
-"""How the service sizes collects against an on-policy learner's demand (``_pump``), with
-stand-in worker handles that record what they were asked: no Ray, no Unity."""
+"""How the service sizes collects against an on-policy learner's demand (``_pump``,
+``rollout/demand.py``), with stand-in worker handles that record what they were asked: no
+Ray, no Unity."""
 
 from __future__ import annotations
 
 import pytest
 
 from learners.factory import actor_factory
+from rollout.demand import Demand
+from rollout.ledger import Counts
 from rollout.service import RolloutService, ServiceConfig
 from rollout.unity import UnityConfig
 
@@ -33,16 +36,23 @@ def pump(
     idle: int = 4,
     in_flight: int = 0,
     horizon: int = 64,
+    buffer: int | None = None,
+    rows: int = 0,
 ) -> list[list[int]]:
     """What each of 4 workers is asked, ``idle`` of them idle, one collect of ``in_flight``
-    steps already under way."""
+    steps already under way; ``buffer``: the learner's demand right after an update (as
+    ``wanted`` when not given); ``rows``: the steps each worker has held in rows at most."""
     config = ServiceConfig(UnityConfig(None), num_workers=4, horizon=horizon, collect_ahead=ahead)
     service = RolloutService(config, actor_factory, learner=None)
     workers = [_Worker() for _ in range(4)]
     service.workers = workers
     service._worker_version = [0] * 4
     service._idle = set(range(idle))
-    service._wanted = wanted
+    if buffer is not None:
+        service.demand.answered(buffer)
+    service.demand.answered(wanted)
+    for worker in range(4):
+        service.demand.rows_seen(worker, {"B": Counts(in_progress=rows)})
     if in_flight:
         service._collects[object()] = (3, in_flight)
     service._pump()
@@ -65,6 +75,34 @@ def test_steps_under_way_count_against_the_demand():
 def test_collect_ahead_keeps_idle_workers_collecting_past_the_demand():
     assert pump(1000, ahead=1200, idle=3, in_flight=1000) == [[400], [400], [400], []]
     assert pump(1000, ahead=1000) == [[500]] * 4
+
+
+def test_workers_holding_more_than_a_buffer_in_rows_collect_through_the_update():
+    """4 workers that each held up to 700 steps in rows: 2,800 against a buffer of 1,000.
+    A row then spans updates whatever they do: they go on past the demand by the 1,800
+    their rows hold beyond the buffer, instead of waiting for its weights."""
+    assert pump(1000, idle=3, in_flight=1000, rows=700) == [[600], [600], [600], []]
+    assert pump(400, buffer=1000, idle=3, in_flight=400, rows=700) == [[600], [600], [600], []]
+
+
+def test_rows_within_a_buffer_change_nothing():
+    assert pump(1000, idle=3, in_flight=1000, rows=250) == [[], [], [], []]
+    assert pump(1000, idle=3, in_flight=400, rows=250) == [[200], [200], [200], []]
+
+
+def test_a_workers_rows_are_the_most_it_held_and_a_learners_buffer_its_largest_demand():
+    demand = Demand()
+    for held in (300, 120, 0):
+        demand.rows_seen(0, {"A": Counts(in_progress=held), "B": Counts(in_progress=held // 3)})
+    demand.rows_seen(1, {"A": Counts(in_progress=200)})
+    for wanted in (None, 2401, 700, 1):
+        demand.answered(wanted)
+    assert (demand.wanted, demand.buffer) == (1, 2401)
+    assert demand.rows_beyond_buffer([0, 1]) == 0  # 400 + 200 in rows
+    assert Demand().rows_beyond_buffer([0]) == 0
+    demand.buffer = 500
+    assert demand.rows_beyond_buffer([0, 1]) == 100
+    assert demand.rows_beyond_buffer([1]) == 0  # a worker retired: its rows left with it
 
 
 @pytest.mark.parametrize("horizon", [16, 64])
@@ -107,5 +145,5 @@ def test_the_learners_newest_answer_is_its_demand_whatever_order_ray_reports(
 
     monkeypatch.setattr(service_module.ray, "wait", newest_first)
     service._drain_submits(block=False)
-    assert service._wanted == 300 and service._submits == []
+    assert service.demand.wanted == 300 and service._submits == []
     ray_session.kill(learner)

@@ -68,7 +68,11 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
         service.run(until=lambda m: m.segments > 0, seconds=120)
         service.run(until=lambda m: service.version >= 4, seconds=60)  # 3 versions acted
         summary = ray_session.get(learner.summary.remote())
+        rows = service.demand.rows(service.live())
     ray_session.kill(learner)
+    # what the workers held in rows, as their collects reported it: within a buffer, so
+    # the gate holds (rollout/demand.py)
+    assert 0 < rows <= workers * 12 * (horizon - 1) < demand
     # A collect stops after the exchange that reaches its share (one exchange of 3DBall's
     # 12 agents emits at most 12 rows of `horizon`), and rows in progress at a version
     # change carry up to horizon - 1 steps per agent into the next version's count.
