@@ -323,10 +323,14 @@ class CentralLearner:
 
     def initialize(self, state: dict[str, Any]) -> None:
         """Start from another run's networks (``--initialize-from``): its weights and
-        observation statistics, none of its steps, versions or optimizer state."""
+        observation statistics, none of its steps, versions or optimizer state. They are
+        version 1: workers start from the factory's weights, version 0, and take a newer
+        version with their next collect (at 0 they would act with the factory's until the
+        first update, and for ever with ``--inference``)."""
         self._published = None
         for name, entry in state["behaviors"].items():
             self._behavior(name, entry["spec"]).network.load_state_dict(entry["network"])
+        self.version += 1
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.version = int(state["version"])

@@ -255,15 +255,29 @@ def test_a_behavior_starts_from_its_init_path_as_mlagents_learn(with_run, how):
 
 
 def test_and_initialized_from_a_fitting_run_it_plays_its_policy_in_inference(with_run):
-    """What the mistake above was about, done right: the run starts from the other's
-    networks (tests/learners/test_learner_modes.py checks the weights), trains on nothing
-    (version 0) and writes no checkpoint."""
+    """What the mistake above was about, done right: the workers play the other run's
+    policy, train nothing and write no checkpoint. The other run's policy is made
+    unmistakable first: it always walks right, so every episode returns Basic's best, 0.93
+    in 7 steps; the factory's random weights would not."""
+    import torch
+
+    from learners import checkpoint
+
+    (saved,) = (with_run / "results/run/checkpoints/Basic_team0").glob("*.pt")
+    state = checkpoint.read(saved)
+    network = state["behaviors"]["Basic?team=0"]["network"]
+    network["logits.weight"].zero_()
+    network["logits.bias"].copy_(torch.tensor([0.0, 0.0, 30.0]))  # stay, left, right
+    checkpoint.save(saved, state)
     argv = [*BASIC, "--run-id", "new", "--initialize-from", "run", "--inference"]
-    status, output = run(with_run, "train", *argv, "--max-steps", "600").split("\n", 1)
+    # past config/Basic.yaml's summary_freq (2,000): the summary reads its episodes
+    status, output = run(with_run, "train", *argv, "--max-steps", "2100").split("\n", 1)
     assert status == "0" and output.splitlines()[-1].endswith("no checkpoint"), output[-3000:]
     assert not (with_run / "results/new/checkpoints").exists()
     summary = json.loads((with_run / "results/new/summary.json").read_text())
-    assert summary["steps"] >= 600 and summary["version"] == 0 and summary["checkpoint"] is None
+    assert summary["steps"] >= 2100 and summary["version"] == 1 and summary["checkpoint"] is None
+    played = summary["behaviors"]["Basic?team=0"]
+    assert played["episode_length"] == 7 and played["mean_reward"] == pytest.approx(0.93), played
 
 
 def test_resume_on_corrupt_checkpoints_names_the_file(with_run):

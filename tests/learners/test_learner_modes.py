@@ -27,13 +27,14 @@ def test_initialize_from_takes_the_networks_and_nothing_else():
     source = trained()
     fresh = CentralLearner(CONFIG, seed=2)
     fresh.initialize(source.state_dict())
-    assert fresh.version == 0 and fresh.progress()["steps"] == {"A?team=0": 0}
+    # a version of their own, newer than the factory's that workers start from
+    assert fresh.version == 1 and fresh.progress()["steps"] == {"A?team=0": 0}
     assert fresh.behaviors["A?team=0"].updates == []
     ours, theirs = fresh.weights()[1]["A?team=0"], source.weights()[1]["A?team=0"]
     for key, value in theirs.items():
         np.testing.assert_array_equal(ours[key], value, err_msg=key)
     fresh.submit([segment(SPEC, 5, 16, "A?team=0", seed=9)])
-    assert fresh.version == 1  # and it trains on from there
+    assert fresh.version == 2  # and it trains on from there
 
 
 def test_inference_counts_steps_and_trains_on_none():
