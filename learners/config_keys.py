@@ -210,8 +210,8 @@ def _behavioral_cloning(path: str, value: object) -> BehavioralCloningSettings:
         "strength": float_in(0),
         "steps": int_from(0),
         "samples_per_update": int_from(0),
-        "num_epoch": _optional(POSITIVE_INT),
-        "batch_size": _optional(POSITIVE_INT),
+        "num_epoch": optional(POSITIVE_INT),
+        "batch_size": optional(POSITIVE_INT),
     }
     given = checked(path, value, checks)
     if "demo_path" not in given:
@@ -225,7 +225,8 @@ def _demo_path(path: str, value: object) -> str:
     return os.path.abspath(os.path.expanduser(value))
 
 
-def _optional(check: Check) -> Check:
+def optional(check: Check) -> Check:
+    """``check``, or None where the value is null."""
     return lambda path, value: None if value is None else check(path, value)
 
 
@@ -241,7 +242,7 @@ def intrinsic_signal(path: str, kind: str, value: object) -> RewardSignalSetting
         "gamma": float_in(0, 1, open_low=True),
         "strength": float_in(0),
         "learning_rate": POSITIVE,
-        "encoding_size": _optional(POSITIVE_INT),
+        "encoding_size": optional(POSITIVE_INT),
     }
     if kind == "gail":
         checks |= {"demo_path": _demo_path, "use_actions": _bool, "use_vail": _bool}

@@ -25,8 +25,10 @@ a median 138k steps against 114k without (docs/benchmarks.md).
 
 Policy lag: workers act with slightly old weights. The surrogate's ratio is taken
 against the log-probability stored with each step (the policy that really acted), which
-corrects moderate lag; steps acted by weights more than ``max_policy_lag`` versions old
-are dropped from the loss (they still serve as GAE context) and counted.
+corrects moderate lag. Every step trains, as in mlagents-learn; with ``max_policy_lag``
+set, steps acted by weights more than that many versions old are dropped from the loss
+(they still serve as GAE context) and counted. Dropping them lost learning with 16 workers
+(docs/benchmarks.md, "policy lag").
 """
 
 from __future__ import annotations
@@ -180,7 +182,8 @@ class PPO:
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
         """Store a packed segment (``lag``: per step, updates of this behavior since the
         weights that acted); returns the steps that will count in the loss."""
-        fresh = lag <= self.settings.hyperparameters.max_policy_lag
+        limit = self.settings.hyperparameters.max_policy_lag
+        fresh = torch.ones_like(lag, dtype=torch.bool) if limit is None else lag <= limit
         self.stale_steps += int((~fresh).sum())
         return self.store.add(segment, keep=fresh)
 

@@ -69,7 +69,9 @@ class Hyperparameters:
     init_entcoef: float = 1.0
     reward_signal_steps_per_update: float | None = None  # None: steps_per_update
     # our extensions, not ML-Agents keys:
-    max_policy_lag: int = 2  # PPO: rows acted by weights > this many versions old are dropped
+    # PPO, POCA: steps acted by weights more than this many updates old are dropped (None:
+    # every step trains, as in mlagents-learn; docs/benchmarks.md, "policy lag")
+    max_policy_lag: int | None = None
     vtrace_rho_clip: float = 1.0  # IMPALA V-trace rho-bar
     vtrace_c_clip: float = 1.0  # IMPALA V-trace c-bar
 

@@ -19,6 +19,7 @@ from learners.config_keys import (
     Check,
     float_in,
     int_from,
+    optional,
 )
 from learners.settings import Hyperparameters, NetworkSettings, TrainerSettings
 
@@ -69,7 +70,7 @@ TRAINERS: Mapping[str, TrainerType] = {
         TrainerType(
             "ppo",
             "learners.ppo:PPO",
-            {**SHARED, **ON_POLICY, "max_policy_lag": int_from(0)},
+            {**SHARED, **ON_POLICY, "max_policy_lag": optional(int_from(0))},
             {"shared_critic": False},
             waits_for_fresh_data=True,
             recurrent="learners.recurrent_ppo:RecurrentPPO",
@@ -96,7 +97,7 @@ TRAINERS: Mapping[str, TrainerType] = {
         TrainerType(  # PPO with a centralized critic over each group (learners/poca.py)
             "poca",
             "learners.poca:POCA",
-            {**SHARED, **ON_POLICY, "max_policy_lag": int_from(0)},
+            {**SHARED, **ON_POLICY, "max_policy_lag": optional(int_from(0))},
             waits_for_fresh_data=True,
         ),
         TrainerType(  # not in ML-Agents: PPO's defaults, one epoch

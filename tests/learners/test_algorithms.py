@@ -227,6 +227,13 @@ def test_ppo_drops_steps_older_than_max_policy_lag():
     assert ppo.stale_steps == 3 and ppo.store.train_steps == 5 and not ppo.ready()
 
 
+def test_ppo_trains_on_every_step_by_default_as_mlagents_learn():
+    spec = vector_spec(continuous=2)
+    ppo = PPO(ActorCritic(spec), settings(batch_size=8, buffer_size=16))
+    assert ppo.add(segment(spec, 1, 8), torch.tensor([0, 1, 2, 3, 4, 5, 30, 0])) == 8
+    assert ppo.stale_steps == 0 and ppo.store.train_steps == 8
+
+
 def test_policy_lag_counts_only_the_behaviors_own_updates():
     # this behavior updated at global versions 1, 3 and 4 (another behavior made 2)
     lag = policy_lag([1, 3, 4], torch.tensor([0, 1, 2, 3, 4]))

@@ -133,7 +133,7 @@ def test_shipped_3dball_values() -> None:
     ball = load_config(config_for_env("3DBall")).for_behavior("3DBall?team=0")
     h = ball.hyperparameters
     assert (h.batch_size, h.buffer_size, h.learning_rate, h.num_epoch) == (256, 2400, 1e-3, 3)
-    assert (h.beta, h.epsilon, h.lambd, h.max_policy_lag) == (1e-3, 0.2, 0.95, 2)
+    assert (h.beta, h.epsilon, h.lambd, h.max_policy_lag) == (1e-3, 0.2, 0.95, None)
     assert ball.network_settings == NetworkSettings(hidden_units=64, num_layers=2, normalize=True)
     assert (ball.gamma, ball.time_horizon, ball.max_steps) == (0.99, 64, 300_000)
     assert (ball.summary_freq, ball.checkpoint_interval) == (6000, 50_000)
