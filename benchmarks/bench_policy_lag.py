@@ -7,8 +7,13 @@ Why not steps to a reward: with many workers 3DBall's first long episodes end la
 agents and episodes of 1,000 steps, near 200k steps in every run), so the summaries of a
 training run say little about how good its policy is until then. The evaluation does.
 
+``--base-tree DIR`` trains each seed once more with the code in DIR (a checkout of another
+commit, its own config and defaults) beside this tree's default config; every evaluation
+runs with this tree's code.
+
     .venv/bin/python benchmarks/bench_policy_lag.py --lags 2 1000 --seeds 0 1 2 \\
         [--workers 16] [--delay-ms 40] [--steps 60000] [--json out.json]
+    .venv/bin/python benchmarks/bench_policy_lag.py --lags --base-tree /tmp/base --seeds 0 1 2
 """
 
 from __future__ import annotations
@@ -34,24 +39,28 @@ SUMMARY = re.compile(r"Step: (\d+)\. Time Elapsed: [\d.]+ s\.(?: Mean Reward: ([
 STALE = "Policy/Stale Steps Dropped"
 
 
-def config_with_lag(lag: int, folder: Path) -> Path:
-    """``config/3DBall.yaml`` with ``max_policy_lag`` set to ``lag``."""
-    config = yaml.safe_load((ROOT / "config" / "3DBall.yaml").read_text())
-    config["behaviors"]["3DBall"]["hyperparameters"]["max_policy_lag"] = lag
-    path = folder / f"3DBall-lag{lag}.yaml"
+def config_with_lag(lag: int | None, folder: Path, tree: Path = ROOT) -> Path:
+    """``tree``'s ``config/3DBall.yaml``, with ``max_policy_lag`` set to ``lag`` if given."""
+    config = yaml.safe_load((tree / "config" / "3DBall.yaml").read_text())
+    if lag is not None:
+        config["behaviors"]["3DBall"]["hyperparameters"]["max_policy_lag"] = lag
+    path = folder / f"3DBall-{'base' if tree != ROOT else 'lag' + str(lag)}.yaml"
     path.write_text(yaml.safe_dump(config))
     return path
 
 
-def train(config: Path, results: Path, seed: int, args: argparse.Namespace) -> dict[str, Any]:
-    """Train until the first summary at or past ``--steps`` (SIGTERM: a checkpoint, exit 0)."""
+def train(
+    config: Path, results: Path, seed: int, args: argparse.Namespace, tree: Path = ROOT
+) -> dict[str, Any]:
+    """Train with ``tree``'s code until the first summary at or past ``--steps`` (SIGTERM:
+    a checkpoint, exit 0)."""
     command = [sys.executable, "-m", "driver.cli", "train", "--no-progress", "--seed", str(seed)]
     command += ["--config", str(config), "--workers", str(args.workers), "--run-id", "train"]
     command += ["--results-dir", str(results), "--max-seconds", str(args.max_seconds)]
-    env = {**os.environ, "UNITYSIM_DELAY_MS": str(args.delay_ms)}
+    env = {**os.environ, "UNITYSIM_DELAY_MS": str(args.delay_ms), "PYTHONPATH": str(tree)}
     started, step = time.monotonic(), 0
     driver = subprocess.Popen(
-        command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        command, cwd=tree, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
     assert driver.stdout is not None
     for line in driver.stdout:
@@ -95,7 +104,8 @@ def stale_fraction(results: Path) -> float | None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--lags", type=int, nargs="+", default=[2, 1000])
+    parser.add_argument("--lags", type=int, nargs="*", default=[2, 1000])
+    parser.add_argument("--base-tree", type=Path, help="another commit's checkout, trained beside")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--workers", type=int, default=16)
     parser.add_argument("--delay-ms", type=float, default=40.0)
@@ -105,19 +115,23 @@ def main() -> None:
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="bench-lag-"))
+    # (label, max_policy_lag or None for the tree's default, tree)
+    sides: list[tuple[str, int | None, Path]] = [(f"lag {lag}", lag, ROOT) for lag in args.lags]
+    if args.base_tree:
+        sides = [("base", None, args.base_tree.resolve()), ("this", None, ROOT), *sides]
     runs = []
     for seed in args.seeds:
-        for lag in args.lags:
-            results = folder / f"lag{lag}-seed{seed}"
-            config = config_with_lag(lag, folder)
-            run = {"lag": lag, "seed": seed, **train(config, results, seed, args)}
+        for label, lag, tree in sides:
+            results = folder / f"{label.replace(' ', '')}-seed{seed}"
+            config = config_with_lag(lag, folder, tree)
+            run = {"side": label, "seed": seed, **train(config, results, seed, args, tree)}
             run |= {"stale": stale_fraction(results), **evaluate(config, results, args)}
             runs.append(run)
             print(json.dumps(run), flush=True)
-    for lag in args.lags:
-        rewards = [r["eval_reward"] for r in runs if r["lag"] == lag and r["eval_reward"]]
+    for label, _, _ in sides:
+        rewards = [r["eval_reward"] for r in runs if r["side"] == label and r["eval_reward"]]
         median = statistics.median(rewards) if rewards else None
-        print(f"max_policy_lag {lag}: evaluation reward median {median}, runs {rewards}")
+        print(f"{label}: evaluation reward median {median}, runs {rewards}")
     if args.json:
         args.json.write_text(
             json.dumps(
