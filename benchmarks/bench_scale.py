@@ -112,7 +112,10 @@ def one_run(
         factory = policy_factory(config)
         settings = config.for_behavior("3DBall")
         horizon = settings.time_horizon
-        ahead = (args.ahead or settings.hyperparameters.buffer_size) if kind == "ppo+ahead" else 0
+        if kind != "ppo+ahead":
+            ahead = 0
+        else:
+            ahead = settings.hyperparameters.buffer_size if args.ahead is None else args.ahead
     service_config = ServiceConfig(
         unity,
         num_workers=workers,

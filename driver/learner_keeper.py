@@ -29,6 +29,13 @@ def load_into(learner: Any, state: dict[str, Any]) -> None:
     ray.get(learner.load_state_dict.remote(state))
 
 
+def initialize_into(learner: Any, state: dict[str, Any]) -> None:
+    """A learner actor takes another run's networks (``--initialize-from``), once built
+    (as ``load_into``)."""
+    ray.get(learner.prepare.remote())
+    ray.get(learner.initialize.remote(state))
+
+
 class LearnerKeeper:
     """Holds the run's learner actor and restores it when it dies."""
 
@@ -42,8 +49,9 @@ class LearnerKeeper:
 
     def restore(self, service: RolloutService, cause: str) -> Any:
         """A new learner from the newest checkpoint (or from the start, before the first
-        one), its version numbered past every version the dead one published, so that each
-        worker takes the restored weights with its next collect."""
+        one: the run's first networks, another run's with ``--initialize-from``), its
+        version numbered past every version the dead one published, so that each worker
+        takes the restored weights with its next collect."""
         if cause.startswith(OUT_OF_MEMORY):  # a new learner would fill the same buffer
             raise RolloutError(
                 f"the learner {cause}; lower the behaviors' buffer_size or give the "

@@ -14,7 +14,7 @@ import ray
 from batches.expert_steps import ExpertSteps
 from driver.curriculum import LessonPlan, lesson_plan
 from driver.declaration import TrainingError
-from driver.learner_keeper import load_into
+from driver.learner_keeper import initialize_into, load_into
 from driver.options import TrainOptions
 from driver.run_dir import Start
 from learners.devices import DeviceError, learner_device
@@ -69,10 +69,17 @@ def choose_device(options: TrainOptions, config: RunConfig) -> str:
 
 
 def start_learner(
-    options: TrainOptions, config: RunConfig, device: str, experts: Mapping[str, ExpertSteps]
+    options: TrainOptions,
+    config: RunConfig,
+    device: str,
+    experts: Mapping[str, ExpertSteps],
+    initial: dict[str, Any] | None = None,
 ) -> Any:
-    """The learner actor; ``experts``: the run's demonstrations (``Plan.experts``)."""
-    return learner_actor(
+    """The learner actor; ``experts``: the run's demonstrations (``Plan.experts``);
+    ``initial``: another run's networks it starts from (``Start.initial``). The driver
+    starts one this way at the run's start and again when one dies before the first
+    checkpoint, so both start from the same networks."""
+    learner = learner_actor(
         config,
         options.max_steps,
         torch_threads=options.learner_threads,
@@ -82,6 +89,9 @@ def start_learner(
         inference=options.inference,
         experts=experts,
     )
+    if initial is not None:
+        initialize_into(learner, initial)
+    return learner
 
 
 def service_config(
@@ -158,12 +168,10 @@ def build_system(
         learner's weights when it does not start from the factory's. ``experts``: the run's
     demonstrations (``Plan.experts``); ``worker_cpus``: each
         worker's share, where the caller sizes it (a Tune trial's placement group)."""
-    learner = start_learner(options, config, device, experts)
+    initial = start.initial if start.resume is None else None
+    learner = start_learner(options, config, device, experts, initial)
     if start.resume is not None:
         load_into(learner, start.resume)
-    elif start.initial is not None:
-        ray.get(learner.prepare.remote())  # as load_into: built before tensors arrive
-        ray.get(learner.initialize.remote(start.initial))
     awaits = start.resume is not None or start.initial is not None
     settings = service_config(options, config, unity, awaits, worker_cpus)
     return RolloutService(settings, policy_factory(config, options.seed), learner), learner

@@ -104,7 +104,7 @@ class TrainingRun:
         )
         self.keeper = LearnerKeeper(
             learner,
-            lambda: start_learner(options, config, device, self.experts),
+            lambda: start_learner(options, config, device, self.experts, self.start.initial),
             self.run_dir,
             options.max_learner_restarts,
         )

@@ -7,9 +7,9 @@ is the Ray shell the CLI starts. Behaviors are discovered from the segments them
 ``PolicyFactory`` the workers use, so learner and worker networks always match.
 
 Versions: one global counter, bumped by every update of any behavior (and by every
-change of what a self-play team acts with). Policy lag of a step is counted in updates *of
-its own behavior* since the version that acted, so two behaviors learning side by side do
-not make each other's data look stale.
+change of what a self-play team acts with, and by networks loaded from another run).
+Policy lag of a step is counted in updates *of its own behavior* since the version that
+acted, so two behaviors learning side by side do not make each other's data look stale.
 
 Self-play (``learners/self_play.py``): the teams of a brain with a ``self_play`` section
 share one behavior state (keyed by the first team seen); only the steps the learning
@@ -323,13 +323,16 @@ class CentralLearner:
 
     def initialize(self, state: dict[str, Any]) -> None:
         """Start from another run's networks (``--initialize-from``): its weights and
-        observation statistics, none of its steps, versions or optimizer state. They are
-        version 1: workers start from the factory's weights, version 0, and take a newer
-        version with their next collect (at 0 they would act with the factory's until the
+        observation statistics, none of its steps, versions or optimizer state. They are a
+        version of their own: workers start from the factory's weights, version 0, and take
+        a newer version with their next collect (at 0 they would act with the factory's until the
         first update, and for ever with ``--inference``)."""
         self._published = None
         for name, entry in state["behaviors"].items():
-            self._behavior(name, entry["spec"]).network.load_state_dict(entry["network"])
+            behavior = self._behavior(name, entry["spec"])
+            behavior.network.load_state_dict(entry["network"])
+            if behavior.settings.self_play is not None:
+                self.self_play.start_from(base_name(name), numpy_state(behavior.network))
         self.version += 1
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

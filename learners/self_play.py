@@ -95,6 +95,14 @@ class Ghost:
             self.opponent_key = uuid.uuid4().hex
 
 
+def _first_ghost(settings: SelfPlaySettings, current: State) -> Ghost:
+    """A brain's ghost before any update: ``current`` its first snapshot and opponent."""
+    ghost = Ghost(settings, current, elos=[settings.initial_elo] * (settings.window + 1))
+    ghost.save(current)
+    ghost.opponent_key = ghost.snapshot_keys[0]
+    return ghost
+
+
 class SelfPlay:
     """The ghost controller and the brains' ghosts of one run."""
 
@@ -110,11 +118,7 @@ class SelfPlay:
         """A behavior id seen for the first time: its brain's ghost (the initial policy as
         the first snapshot and opponent) and its team in the controller's queue."""
         if brain not in self.ghosts:
-            window = settings.window
-            ghost = Ghost(settings, current, elos=[settings.initial_elo] * (window + 1))
-            ghost.save(current)
-            ghost.opponent_key = ghost.snapshot_keys[0]
-            self.ghosts[brain] = ghost
+            self.ghosts[brain] = _first_ghost(settings, current)
         if team not in self.team_ghost:
             self.team_ghost[team] = brain
             if self.learning_team < 0:
@@ -125,6 +129,15 @@ class SelfPlay:
         ghost = self.ghosts[brain]
         if ghost.learning_team < 0:
             ghost.learning_team = self.learning_team
+
+    def start_from(self, brain: str, current: State) -> None:
+        """The brain's networks were loaded before it learned (``--initialize-from``): its
+        ghost starts from them, as ML-Agents' takes its first snapshot after loading, and
+        not from the factory's weights it joined with."""
+        old = self.ghosts[brain]
+        ghost = _first_ghost(old.settings, current)
+        ghost.learning_team = old.learning_team
+        self.ghosts[brain] = ghost
 
     def snapshot_keys(self) -> set[str]:
         """The keys of every state an opponent may act with (the windows, the opponents)."""

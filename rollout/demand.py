@@ -16,6 +16,12 @@ the service sends workers after the demand plus what their rows hold beyond a bu
 12,000 steps in rows against a buffer of 2,400, they then collect through each update;
 with 2 workers, 1,500 steps in rows, they wait for it as before. ``collect_ahead`` (the
 CLI's ``--collect-ahead``) adds a fixed number of steps on top.
+
+The rows counted are every behavior's a worker holds, and the buffer is the least one the
+learner states (its demand is its behaviors' least): with a self-play opponent's rows, or an
+off-policy behavior's beside an on-policy one, the excess is an upper bound, and workers go
+on a little further than the on-policy behavior alone would warrant. Before the learner's
+first update its largest demand is below a buffer, so the excess is larger then too.
 """
 
 from __future__ import annotations

@@ -113,6 +113,7 @@ class RolloutService(WorkerSupervision):
 
     def start(self) -> None:
         self._started = time.perf_counter()
+        self.demand = Demand()  # these workers' rows, from their first collects on
         # Workers first: their processes and Unity players start while the learner's does.
         self.workers = [self._make_worker(i) for i in range(self.config.num_workers)]
         if self.membership is not None:

@@ -196,3 +196,24 @@ def test_teams_the_workers_met_join_before_their_first_rows():
         learner.submit([played("Striker?team=0", learner.version, seed=seed)])
     assert learner.self_play.learning_team == 1  # no goalie row has arrived yet
     assert set(learner.weights()[1]) == {"Striker?team=0", "Goalie?team=1"}
+
+
+def test_initialized_from_another_run_the_opponent_plays_its_networks_not_the_factorys():
+    """``--initialize-from``: the ghost's first snapshot, which the other team plays, is the
+    loaded policy (as ML-Agents' ghost snapshots after loading), sent with a version of its
+    own."""
+    source = CentralLearner(config(), seed=1)
+    source.submit([played("Soccer?team=0", 0, seed=n) for n in range(2)])  # an update
+    fresh = CentralLearner(config(), seed=2)
+    fresh.initialize(source.state_dict())
+    fresh._behavior("Soccer?team=1", learner_spec())  # the other team appears afterwards
+    loaded = {
+        k: v.detach().numpy()
+        for k, v in source.behaviors["Soccer?team=0"].network.state_dict().items()
+    }
+    version, weights = fresh.weights()
+    assert version == 1 and same(weights["Soccer?team=0"], loaded)
+    opponent = weights["Soccer?team=1"]
+    assert isinstance(opponent, Snapshot) and same(opponent.state, loaded)
+    ghost = fresh.self_play.ghosts["Soccer"]
+    assert opponent.key == ghost.snapshot_keys[0] and len(ghost.snapshots) == 1
