@@ -14,7 +14,7 @@ import torch
 
 from batches import keys
 from batches.segment import Segment, Sources
-from learners.config import defaults, parse_config
+from learners.config import ConfigError, defaults, parse_config
 from learners.impala import IMPALA
 from learners.learner import CentralLearner, policy_lag
 from learners.modules import add_flat_action
@@ -232,6 +232,20 @@ def test_ppo_trains_on_every_step_by_default_as_mlagents_learn():
     ppo = PPO(ActorCritic(spec), settings(batch_size=8, buffer_size=16))
     assert ppo.add(segment(spec, 1, 8), torch.tensor([0, 1, 2, 3, 4, 5, 30, 0])) == 8
     assert ppo.stale_steps == 0 and ppo.store.train_steps == 8
+
+
+def test_max_policy_lag_is_off_unless_given_a_number() -> None:
+    def lag(*value: object) -> int | None:
+        section = {"hyperparameters": {"max_policy_lag": value[0]}} if value else {}
+        return (
+            parse_config({"behaviors": {"A": section}})
+            .behaviors["A"]
+            .hyperparameters.max_policy_lag
+        )
+
+    assert (lag(), lag(None), lag(0), lag(3)) == (None, None, 0, 3)
+    with pytest.raises(ConfigError, match=r"max_policy_lag: expected an integer >= 0"):
+        lag(-1)
 
 
 def test_policy_lag_counts_only_the_behaviors_own_updates():

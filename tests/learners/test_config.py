@@ -129,23 +129,6 @@ def test_every_unitysim_env_has_a_config() -> None:
     assert impala.hyperparameters.num_epoch == 1
 
 
-def test_max_policy_lag_is_off_unless_given_a_number() -> None:
-    def lag(value: object) -> int | None:
-        section = {"hyperparameters": {"max_policy_lag": value}}
-        return (
-            parse_config({"behaviors": {"A": section}})
-            .behaviors["A"]
-            .hyperparameters.max_policy_lag
-        )
-
-    assert (
-        parse_config({"behaviors": {"A": {}}}).behaviors["A"].hyperparameters.max_policy_lag is None
-    )
-    assert (lag(None), lag(0), lag(3)) == (None, 0, 3)
-    with pytest.raises(ConfigError, match=r"max_policy_lag: expected an integer >= 0"):
-        lag(-1)
-
-
 def test_shipped_3dball_values() -> None:
     ball = load_config(config_for_env("3DBall")).for_behavior("3DBall?team=0")
     h = ball.hyperparameters
