@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from bench_learning import scalars  # benchmarks/bench_learning.py
 from machine import machine  # benchmarks/machine.py
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -91,15 +92,11 @@ def evaluate(config: Path, results: Path, args: argparse.Namespace) -> dict[str,
 
 def stale_fraction(results: Path) -> float | None:
     """The share of the training run's steps PPO dropped as too stale (its TensorBoard)."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    for events in (results / "train").rglob("events.out.tfevents.*"):
-        accumulator = EventAccumulator(str(events))
-        accumulator.Reload()
-        if STALE in accumulator.Tags()["scalars"]:
-            last = accumulator.Scalars(STALE)[-1]
-            return round(last.value / last.step, 3)
-    return None
+    points = scalars(results / "train", STALE)
+    if not points:
+        return None
+    _, step, dropped = points[-1]
+    return round(dropped / step, 3)
 
 
 def main() -> None:

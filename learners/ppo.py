@@ -183,7 +183,9 @@ class PPO:
         """Store a packed segment (``lag``: per step, updates of this behavior since the
         weights that acted); returns the steps that will count in the loss."""
         limit = self.settings.hyperparameters.max_policy_lag
-        fresh = torch.ones_like(lag, dtype=torch.bool) if limit is None else lag <= limit
+        if limit is None:  # every step trains
+            return self.store.add(segment)
+        fresh = lag <= limit
         self.stale_steps += int((~fresh).sum())
         return self.store.add(segment, keep=fresh)
 

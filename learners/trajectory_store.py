@@ -103,8 +103,8 @@ class TrajectoryStore:
     def add(self, segment: TensorDictBase, keep: torch.Tensor | None = None) -> int:
         """Store a packed segment; ``keep`` (per step) narrows which steps train."""
         count = segment.batch_size[0]
-        if keep is None:
-            keep = torch.ones(count, dtype=torch.bool)
+        if keep is None:  # every step, on the segment's device (not torch's default)
+            keep = torch.ones_like(segment[keys.NEXT, keys.DONE].reshape(-1), dtype=torch.bool)
         fields = self._fields(segment, keep)
         kept = fields["done"] if self.terminal_obs else fields["done"] & ~fields["terminated"]
         ends = kept.nonzero().squeeze(-1)
