@@ -40,6 +40,7 @@ from learners.policies import ActorCritic, numpy_state
 from learners.self_play import SelfPlay, as_brain, learning_steps, team_of
 from learners.trainers import trainer
 from learners.trajectory_store import BufferTooLarge
+from learners.update_cut import update_cut
 
 if TYPE_CHECKING:  # tensordict only where segments arrive: the driver never loads it
     from tensordict import TensorDict
@@ -157,6 +158,17 @@ class CentralLearner:
         return self.version, self.wanted()
 
     def _learn(self, key: str, state: BehaviorState, segment: TensorDict) -> None:
+        """Store ``segment``, updating where the buffer tips over (``learners/update_cut.py``):
+        its steps after that wait for the next update, as later arrivals do in ML-Agents."""
+        while not self.inference and (wanted := state.algorithm.wanted()) is not None:
+            cut = update_cut(segment, wanted)
+            if cut >= len(segment):
+                break
+            self._store(key, state, segment[:cut])
+            segment = segment[cut:]
+        self._store(key, state, segment)
+
+    def _store(self, key: str, state: BehaviorState, segment: TensorDict) -> None:
         lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])
         state.steps += segment.batch_size[0]
         if self.inference:

@@ -3,8 +3,9 @@
 Segments arrive as packed trajectories (docs/batch-format.md). Each field goes straight
 into a preallocated tensor on the learner's device, in the dtype it came in (cameras stay
 uint8), so an update neither concatenates the buffer nor copies it. The tensors hold
-``rows`` (``buffer_size``) plus room for a few segments past it: the update comes once
-the buffer is *over* ``buffer_size``, and the segment that tips it over is stored whole.
+``rows`` (``buffer_size``) plus room past it: the update comes once the buffer is *over*
+``buffer_size``, with the trajectory that tipped it over and the others its worker finished
+in the same exchange (the learner cuts segments there, ``learners/update_cut.py``).
 
 Observations are kept once. Within a trajectory the next observation of a step is the
 observation of the step after it, so ``("next", "obs")`` is kept only where a trajectory
@@ -246,7 +247,7 @@ class TrajectoryStore:
 
     def _fit(self, rows: int, ends: int) -> None:
         """Grow where a segment does not fit (once the buffer is past ``buffer_size``, the
-        segment that tips it over may be long)."""
+        exchange that tips it over may bring many trajectories)."""
         if rows > len(self.columns["log_prob"]):
             size = max(rows, math.ceil(len(self.columns["log_prob"]) * 1.25))
             self.columns = {k: _grown(v, size, self.rows) for k, v in self.columns.items()}

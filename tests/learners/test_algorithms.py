@@ -281,7 +281,8 @@ def test_learner_versions_weights_and_checkpoint_round_trip():
     version, wanted = learner.submit(
         [segment(s, 5, 16, name) for name, s in specs.items()]  # both pass their buffer
     )
-    assert version == 2 and wanted == 65  # PPO's next update; IMPALA wants no pause
+    # PPO updated on 32 + 48 steps (the third trajectory tipped it); the last two wait
+    assert version == 2 and wanted == 65 - 32  # for its next update; IMPALA wants no pause
     progress = learner.progress()
     assert progress["steps"] == {"A?team=0": 112, "B?team=0": 80}
     assert not progress["done"]
