@@ -97,9 +97,12 @@ def run_command(
     cap_s: float,
     measure: str = "reward",
     behavior: str | None = None,
+    stop_step: int | None = None,
+    cwd: Path | None = None,
 ) -> None:
-    """Run until ``stop_at`` is reached (None: to ``cap_s``), reading summary lines live:
-    ``measure`` (the mean reward, or one of ``MEASURES``) of ``behavior`` (None: any)."""
+    """Run until ``stop_at`` is reached (None: to ``cap_s``) or a summary at ``stop_step``
+    steps, reading summary lines live: ``measure`` (the mean reward, or one of
+    ``MEASURES``) of ``behavior`` (None: any)."""
     tag = uuid.uuid4().hex
     run.log = log
     started = run.launched_at = time.time()
@@ -110,6 +113,7 @@ def run_command(
         text=True,
         start_new_session=True,
         env={**os.environ, **env, TAG: tag, "PYTHONUNBUFFERED": "1"},
+        cwd=cwd,
     )
     done = threading.Event()
 
@@ -132,6 +136,8 @@ def run_command(
                         reward = float(value.group(1))
                     run.summaries.append((now, int(match.group(2)), reward))
                     if stop_at is not None and run.reached(stop_at) is not None:
+                        done.set()
+                    if stop_step is not None and int(match.group(2)) >= stop_step:
                         done.set()
         done.set()
 

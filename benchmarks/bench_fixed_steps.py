@@ -1,0 +1,170 @@
+"""Learning at fixed steps, and the size of each update, against mlagents-learn: an
+ML-Agents config under both trainers on the same unitysim build, every run to the same
+step budget, side by side.
+
+Per seed, mlagents-learn runs on one core while ours run one after the other on the
+other: this tree, and with ``--base-tree DIR`` also the code in DIR (a checkout of
+another commit). Each run is stopped at its first summary at or past ``--steps``. The
+report gives, per run and in the median over seeds: the mean reward of the summary
+nearest each of ``--marks``, the first summary at or above each of ``--levels``, and
+the mean number of steps an update trained on, per stretch between marks
+(mlagents-learn's counted as it runs, ``mlagents_update_log.py``; ours' from
+``Policy/Samples``).
+
+    .venv/bin/python benchmarks/bench_fixed_steps.py --config ppo_Pyramids.yaml \\
+        --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import statistics
+import sys
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+from bench_learning import scalars  # benchmarks/bench_learning.py
+from bench_vs_mlagents import CONFIGS, build_player
+from machine import machine  # benchmarks/machine.py
+from trainer_runs import Run, run_command
+
+ROOT = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parent
+
+
+def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> dict[str, Any]:
+    updates = work / f"ml-{seed}.updates.jsonl"
+    command = [str(args.anchor / "venv/bin/python"), str(HERE / "mlagents_update_log.py")]
+    command += [str(args.anchor / "mlagents_learn_launcher.py"), str(CONFIGS / args.config)]
+    command += [f"--env={build.with_suffix('')}", f"--run-id=ml-{seed}", "--no-graphics"]
+    command += ["--num-envs=2", "--force", "--results-dir", str(work / "mlagents")]
+    command += ["--base-port", str(31000 + 10 * seed), "--seed", str(seed)]
+    env = {"PYTHONPATH": str(args.anchor / "shim"), "UPDATE_LOG": str(updates)}
+    run = Run("mlagents-learn", seed)
+    run_command(
+        command, env, run, signal.SIGTERM, work / f"ml-{seed}.log", None, args.cap,
+        stop_step=args.steps,
+    )  # fmt: skip
+    sizes = [tuple(json.loads(line)) for line in updates.read_text().splitlines()]
+    return report(run, sizes, args)
+
+
+def our_run(
+    args: argparse.Namespace, seed: int, build: Path, work: Path, side: str, tree: Path
+) -> dict[str, Any]:
+    run_id = f"{side}-{seed}"
+    command = [sys.executable, "-m", "driver.cli", "train", "--env", str(build)]
+    command += ["--config", str(CONFIGS / args.config), "--results-dir", str(work / "ours")]
+    command += ["--run-id", run_id, "--seed", str(seed), "--workers", "2", "--force"]
+    command += ["--no-progress", "--max-seconds", str(args.cap)]
+    run = Run(side, seed)
+    run_command(
+        command, {"PYTHONPATH": str(tree)}, run, signal.SIGINT, work / f"{run_id}.log", None,
+        args.cap + 60, stop_step=args.steps, cwd=tree,
+    )  # fmt: skip
+    samples = scalars(work / "ours" / run_id, "Policy/Samples")
+    return report(run, update_sizes(samples), args)
+
+
+def update_sizes(samples: list[tuple[float, int, float]]) -> list[tuple[int, int]]:
+    """(step, size) per update, from each summary's mean size: its steps in updates of it."""
+    out, last = [], 0
+    for _, step, mean in samples:
+        count = max(round((step - last) / mean), 1)
+        out += [(step, round(mean))] * count
+        last = step
+    return out
+
+
+def report(run: Run, sizes: list[tuple[int, int]], args: argparse.Namespace) -> dict[str, Any]:
+    near = {}
+    for mark in args.marks:
+        if run.summaries and run.summaries[-1][1] >= mark - args.spacing:
+            near[mark] = min(run.summaries, key=lambda s: abs(s[1] - mark))[2]
+    first = {}
+    for level in args.levels:
+        hit = run.reached(level)
+        first[level] = None if hit is None else hit[1]
+    stretches, start = {}, 0
+    for mark in [*args.marks, args.steps]:
+        inside = [size for step, size in sizes if start < step <= mark]
+        if inside:
+            stretches[f"{start // 1000}k-{mark // 1000}k"] = round(statistics.mean(inside))
+        start = mark
+    return {
+        "trainer": run.variant,
+        "seed": run.seed,
+        "steps": run.summaries[-1][1] if run.summaries else 0,
+        "seconds": round(run.wall_s, 1),
+        "reward_at": near,
+        "first_at_or_above": first,
+        "update_size": stretches,
+        "leftover_processes": run.leftovers,
+    }
+
+
+def medians(runs: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for trainer in dict.fromkeys(r["trainer"] for r in runs):
+        mine = [r for r in runs if r["trainer"] == trainer]
+        at = {m: [r["reward_at"][m] for r in mine if m in r["reward_at"]] for m in args.marks}
+        first = {lv: [r["first_at_or_above"][lv] for r in mine] for lv in args.levels}
+        out[trainer] = {
+            "reward_at": {m: round(statistics.median(v), 3) for m, v in at.items() if v},
+            "first_at_or_above": {
+                lv: {
+                    "reached": sum(s is not None for s in v),
+                    "median_of_reached": statistics.median([s for s in v if s]) if any(v) else None,
+                }
+                for lv, v in first.items()
+            },
+        }
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", default="ppo_Pyramids.yaml", help="in mlagents_configs/")
+    parser.add_argument("--env", default="Pyramids", help="the unitysim environment")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[10, 11])
+    parser.add_argument("--steps", type=int, default=540_000)
+    parser.add_argument("--marks", type=int, nargs="*", default=[150_000, 300_000, 450_000])
+    parser.add_argument("--spacing", type=int, default=30_000, help="the config's summary_freq")
+    parser.add_argument("--levels", type=float, nargs="*", default=[0.5, 1.0])
+    parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run too")
+    parser.add_argument("--anchor", type=Path, default=Path("/tmp/mlbench"))
+    parser.add_argument("--cap", type=float, default=1800.0, help="seconds: a safety stop")
+    parser.add_argument("--work", type=Path, help="keep builds, logs and runs here")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench-fixed-steps-"))
+    work.mkdir(parents=True, exist_ok=True)
+    build = build_player(args.env, work)
+    sides = [("ours", ROOT)] + ([("base", args.base_tree.resolve())] if args.base_tree else [])
+    runs: list[dict[str, Any]] = []
+    for seed in args.seeds:
+        anchor: list[dict[str, Any]] = []
+        thread = threading.Thread(
+            target=lambda s=seed, out=anchor: out.append(anchor_run(args, s, build, work))
+        )
+        thread.start()
+        for side, tree in sides:
+            runs.append(our_run(args, seed, build, work, side, tree))
+            print(json.dumps(runs[-1]), flush=True)
+        thread.join()
+        runs += anchor
+        print(json.dumps(anchor[0]), flush=True)
+    result = {"machine": machine(), "config": args.config, "runs": runs}
+    result["medians"] = medians(runs, args)
+    print(json.dumps(result["medians"], indent=1))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

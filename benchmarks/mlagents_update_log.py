@@ -1,0 +1,54 @@
+"""Run the anchor's mlagents-learn launcher with each on-policy update's size written down.
+
+    UPDATE_LOG=<file> <anchor>/venv/bin/python benchmarks/mlagents_update_log.py \\
+        <anchor>/mlagents_learn_launcher.py <mlagents-learn arguments>
+
+Each line is ``[step, steps in the buffer]``, read as ``OnPolicyTrainer._update_policy``
+starts: what mlagents-learn 1.1.0 trains on in that update. Nothing in site-packages is
+edited; the method is wrapped once ``mlagents.trainers.trainer_controller`` is imported
+(the launcher's own workarounds have run by then).
+"""
+
+from __future__ import annotations
+
+import builtins
+import json
+import os
+import runpy
+import sys
+from typing import Any
+
+LOG = os.environ["UPDATE_LOG"]
+
+
+def wrap() -> None:
+    from mlagents.trainers.trainer import on_policy_trainer
+
+    trainer = on_policy_trainer.OnPolicyTrainer
+    update = trainer._update_policy
+
+    def logged(self: Any) -> Any:
+        with open(LOG, "a") as out:
+            out.write(json.dumps([int(self.get_step), self.update_buffer.num_experiences]) + "\n")
+        return update(self)
+
+    trainer._update_policy = logged
+
+
+def main() -> None:
+    launcher, sys.argv = sys.argv[1], sys.argv[1:]
+    plain = builtins.__import__
+
+    def hooked(name: str, *args: Any, **kwargs: Any) -> Any:
+        module = plain(name, *args, **kwargs)
+        if name == "mlagents.trainers.trainer_controller":
+            builtins.__import__ = plain
+            wrap()
+        return module
+
+    builtins.__import__ = hooked
+    runpy.run_path(launcher, run_name="__main__")
+
+
+if __name__ == "__main__":
+    main()
