@@ -2,8 +2,8 @@
 ML-Agents config under both trainers on the same unitysim build, every run to the same
 step budget, side by side.
 
-Per seed, mlagents-learn runs on one core while ours run one after the other on the
-other: this tree, and with ``--base-tree DIR`` also the code in DIR (a checkout of
+Per seed, mlagents-learn runs while ours run one after the other beside it (not pinned to
+cores): this tree, and with ``--base-tree DIR`` also the code in DIR (a checkout of
 another commit). Each run is stopped at its first summary at or past ``--steps``. The
 report gives, per run and in the median over seeds: the mean reward of the summary
 nearest each of ``--marks``, the first summary at or above each of ``--levels``, and
@@ -49,8 +49,8 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
         command, env, run, signal.SIGTERM, work / f"ml-{seed}.log", None, args.cap,
         stop_step=args.steps,
     )  # fmt: skip
-    sizes = [tuple(json.loads(line)) for line in updates.read_text().splitlines()]
-    return report(run, sizes, args)
+    lines = updates.read_text().splitlines() if updates.is_file() else []  # none: it failed
+    return report(run, [tuple(json.loads(line)) for line in lines], args)
 
 
 def our_run(
@@ -71,9 +71,12 @@ def our_run(
 
 
 def update_sizes(samples: list[tuple[float, int, float]]) -> list[tuple[int, int]]:
-    """(step, size) per update, from each summary's mean size: its steps in updates of it."""
+    """(step, size) per update, from each summary's mean size: its steps in updates of it,
+    dated at the summary (one behavior's run)."""
     out, last = [], 0
     for _, step, mean in samples:
+        if mean <= 0:
+            continue
         count = max(round((step - last) / mean), 1)
         out += [(step, round(mean))] * count
         last = step
@@ -157,7 +160,7 @@ def main() -> int:
             print(json.dumps(runs[-1]), flush=True)
         thread.join()
         runs += anchor
-        print(json.dumps(anchor[0]), flush=True)
+        print(json.dumps(anchor[0] if anchor else {"mlagents-learn": "failed", "seed": seed}))
     result = {"machine": machine(), "config": args.config, "runs": runs}
     result["medians"] = medians(runs, args)
     print(json.dumps(result["medians"], indent=1))

@@ -170,6 +170,7 @@ class CentralLearner:
 
     def _store(self, key: str, state: BehaviorState, segment: TensorDict) -> None:
         lag = policy_lag(state.updates, segment[keys.POLICY_VERSION])
+        spent = state.steps >= budget(key, self.config, self.max_steps)
         state.steps += segment.batch_size[0]
         if self.inference:
             return
@@ -177,7 +178,7 @@ class CentralLearner:
             state.algorithm.add(segment, lag)
         except BufferTooLarge as error:  # before the buffer exists: one line, no OOM kill
             raise MemoryError(f"behavior {base_name(key)}: {error}") from None
-        if state.algorithm.ready():
+        if state.algorithm.ready() and not spent:  # past its steps: no more updates
             self._update(key, state)
 
     def _learning_part(

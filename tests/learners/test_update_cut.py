@@ -43,3 +43,11 @@ def test_one_large_segment_gives_updates_of_mlagents_size_and_keeps_the_rest():
     assert learner.progress()["steps"] == {"A?team=0": 300}
     learner.submit([segment(SPEC, rows=2, steps=30, behavior="A?team=0", seed=1)])
     assert [r["Policy/Samples"] for _, _, r in learner.drain_reports()] == [120]
+
+
+def test_no_update_once_the_behavior_has_its_steps():
+    learner = CentralLearner(CONFIG, max_steps=100, seed=0)
+    learner.submit([segment(SPEC, rows=10, steps=30, behavior="A?team=0")])
+    # the delivery's first 120 steps cross the budget and update; the next 120 do not
+    assert [r["Policy/Samples"] for _, _, r in learner.drain_reports()] == [120]
+    assert learner.progress()["done"]
