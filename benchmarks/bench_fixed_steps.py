@@ -30,7 +30,7 @@ from typing import Any
 from bench_learning import scalars  # benchmarks/bench_learning.py
 from bench_vs_mlagents import CONFIGS, build_player
 from machine import machine  # benchmarks/machine.py
-from trainer_runs import Run, run_command
+from trainer_runs import Run, anchor_command, our_command, run_command
 
 ROOT = Path(__file__).resolve().parent.parent
 HERE = Path(__file__).resolve().parent
@@ -38,11 +38,12 @@ HERE = Path(__file__).resolve().parent
 
 def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> dict[str, Any]:
     updates = work / f"ml-{seed}.updates.jsonl"
-    command = [str(args.anchor / "venv/bin/python"), str(HERE / "mlagents_update_log.py")]
-    command += [str(args.anchor / "mlagents_learn_launcher.py"), str(CONFIGS / args.config)]
-    command += [f"--env={build.with_suffix('')}", f"--run-id=ml-{seed}", "--no-graphics"]
-    command += ["--num-envs=2", "--force", "--results-dir", str(work / "mlagents")]
-    command += ["--base-port", str(31000 + 10 * seed), "--seed", str(seed)]
+    prefix = [str(args.anchor / "venv/bin/python"), str(HERE / "mlagents_update_log.py")]
+    prefix.append(str(args.anchor / "mlagents_learn_launcher.py"))
+    command = anchor_command(
+        prefix, CONFIGS / args.config, build, f"ml-{seed}", work / "mlagents", 31000 + 10 * seed,
+        seed,
+    )  # fmt: skip
     env = {"PYTHONPATH": str(args.anchor / "shim"), "UPDATE_LOG": str(updates)}
     run = Run("mlagents-learn", seed)
     run_command(
@@ -57,10 +58,9 @@ def our_run(
     args: argparse.Namespace, seed: int, build: Path, work: Path, side: str, tree: Path
 ) -> dict[str, Any]:
     run_id = f"{side}-{seed}"
-    command = [sys.executable, "-m", "driver.cli", "train", "--env", str(build)]
-    command += ["--config", str(CONFIGS / args.config), "--results-dir", str(work / "ours")]
-    command += ["--run-id", run_id, "--seed", str(seed), "--workers", "2", "--force"]
-    command += ["--no-progress", "--max-seconds", str(args.cap)]
+    prefix = [sys.executable, "-m", "driver.cli", "train"]
+    config, results = CONFIGS / args.config, work / "ours"
+    command = our_command(prefix, config, build, run_id, results, seed, args.cap)
     run = Run(side, seed)
     run_command(
         command, {"PYTHONPATH": str(tree)}, run, signal.SIGINT, work / f"{run_id}.log", None,
@@ -93,8 +93,9 @@ def report(run: Run, sizes: list[tuple[int, int]], args: argparse.Namespace) -> 
         hit = run.reached(level)
         first[level] = None if hit is None else hit[1]
     stretches, start = {}, 0
-    for mark in [*args.marks, args.steps]:
-        inside = [size for step, size in sizes if start < step <= mark]
+    for mark in [*args.marks, args.steps]:  # the last takes the summary past --steps too
+        end = mark if mark != args.steps else float("inf")
+        inside = [size for step, size in sizes if start < step <= end]
         if inside:
             stretches[f"{start // 1000}k-{mark // 1000}k"] = round(statistics.mean(inside))
         start = mark

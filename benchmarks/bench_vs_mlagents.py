@@ -35,7 +35,7 @@ from pathlib import Path
 
 import yaml
 from machine import machine  # benchmarks/machine.py
-from trainer_runs import Run, run_command
+from trainer_runs import Run, anchor_command, our_command, run_command
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
@@ -136,22 +136,10 @@ def anchor_run(
     case: Case, seed: int, build: Path, config: Path, anchor: Path, work: Path, port: int
 ) -> Run:
     run = Run(ANCHOR, seed, held=case.held)
-    command = [
-        str(anchor / "venv/bin/python"),
-        str(anchor / "mlagents_learn_launcher.py"),
-        str(config),
-        f"--env={build.with_suffix('')}",
-        f"--run-id=ml-{case.name}-{seed}",
-        "--no-graphics",
-        "--num-envs=2",
-        "--force",
-        "--results-dir",
-        str(work / "mlagents"),
-        "--base-port",
-        str(port),
-        "--seed",
-        str(seed),
-    ]
+    prefix = [str(anchor / "venv/bin/python"), str(anchor / "mlagents_learn_launcher.py")]
+    command = anchor_command(
+        prefix, config, build, f"ml-{case.name}-{seed}", work / "mlagents", port, seed
+    )
     env = {"PYTHONPATH": str(anchor / "shim"), "MLBENCH_MARKS": "1"}
     log = work / f"ml-{case.name}-{seed}.log"
     stop_at = levels(case, None)[-1]
@@ -164,26 +152,8 @@ def our_run(
 ) -> Run:
     run = Run(variant, seed, held=case.held)
     run_id = f"ours-{case.name}-{'ml' if variant == OURS_MLAGENTS else 'shipped'}-{seed}"
-    command = [
-        str(ROOT / ".venv/bin/unity-rollout"),
-        "train",
-        "--env",
-        str(build),
-        "--config",
-        str(config),
-        "--results-dir",
-        str(work / "ours"),
-        "--run-id",
-        run_id,
-        "--seed",
-        str(seed),
-        "--workers",
-        "2",
-        "--force",
-        "--no-progress",
-        "--max-seconds",
-        str(case.cap_s + 30),
-    ]
+    prefix = [str(ROOT / ".venv/bin/unity-rollout"), "train"]
+    command = our_command(prefix, config, build, run_id, work / "ours", seed, case.cap_s + 30)
     log = work / f"{run_id}.log"
     run_command(command, {}, run, signal.SIGINT, log, stop_at, *reading(case))
     summary = work / "ours" / run_id / "summary.json"

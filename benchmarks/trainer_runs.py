@@ -76,6 +76,55 @@ class Run:
         }
 
 
+def anchor_command(
+    prefix: list[str], config: Path, build: Path, run_id: str, results: Path, port: int, seed: int
+) -> list[str]:
+    """mlagents-learn as the benchmarks run it (``prefix``: the anchor's Python and launcher):
+    2 Unity instances of ``build``, no graphics."""
+    return [
+        *prefix,
+        str(config),
+        f"--env={build.with_suffix('')}",
+        f"--run-id={run_id}",
+        "--no-graphics",
+        "--num-envs=2",
+        "--force",
+        "--results-dir",
+        str(results),
+        "--base-port",
+        str(port),
+        "--seed",
+        str(seed),
+    ]
+
+
+def our_command(
+    prefix: list[str], config: Path, build: Path, run_id: str, results: Path, seed: int,
+    seconds: float,
+) -> list[str]:  # fmt: skip
+    """``unity-rollout train`` as the benchmarks run it (``prefix``: up to ``train``): 2
+    workers, as mlagents-learn's 2 instances, stopped after ``seconds`` at the latest."""
+    return [
+        *prefix,
+        "--env",
+        str(build),
+        "--config",
+        str(config),
+        "--results-dir",
+        str(results),
+        "--run-id",
+        run_id,
+        "--seed",
+        str(seed),
+        "--workers",
+        "2",
+        "--force",
+        "--no-progress",
+        "--max-seconds",
+        str(seconds),
+    ]
+
+
 def tagged(tag: str) -> list[psutil.Process]:
     found = []
     for process in psutil.process_iter():
