@@ -13,6 +13,9 @@ the mean number of steps an update trained on, per stretch between marks
 
     .venv/bin/python benchmarks/bench_fixed_steps.py --config ppo_Pyramids.yaml \\
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
+
+An imitation config (``imitation_Pyramids.yaml``) takes ``--demo-steps 5000``: both
+trainers then read one recording of unitysim's scripted expert as its ``demo_path``.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from bench_learning import scalars  # benchmarks/bench_learning.py
-from bench_vs_mlagents import CONFIGS, build_player
+from bench_vs_mlagents import build_player, with_demo
 from machine import machine  # benchmarks/machine.py
 from trainer_runs import Run, anchor_command, our_command, run_command
 
@@ -41,7 +44,7 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
     prefix = [str(args.anchor / "venv/bin/python"), str(HERE / "mlagents_update_log.py")]
     prefix.append(str(args.anchor / "mlagents_learn_launcher.py"))
     command = anchor_command(
-        prefix, CONFIGS / args.config, build, f"ml-{seed}", work / "mlagents", 31000 + 10 * seed,
+        prefix, args.config_path, build, f"ml-{seed}", work / "mlagents", 31000 + 10 * seed,
         seed,
     )  # fmt: skip
     env = {"PYTHONPATH": str(args.anchor / "shim"), "UPDATE_LOG": str(updates)}
@@ -59,7 +62,7 @@ def our_run(
 ) -> dict[str, Any]:
     run_id = f"{side}-{seed}"
     prefix = [sys.executable, "-m", "driver.cli", "train"]
-    config, results = CONFIGS / args.config, work / "ours"
+    config, results = args.config_path, work / "ours"
     command = our_command(prefix, config, build, run_id, results, seed, args.cap)
     run = Run(side, seed)
     run_command(
@@ -139,6 +142,9 @@ def main() -> int:
     parser.add_argument("--marks", type=int, nargs="*", default=[150_000, 300_000, 450_000])
     parser.add_argument("--spacing", type=int, default=30_000, help="the config's summary_freq")
     parser.add_argument("--levels", type=float, nargs="*", default=[0.5, 1.0])
+    parser.add_argument(
+        "--demo-steps", type=int, default=0, help="steps of unitysim's expert for demo_path"
+    )
     parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run too")
     parser.add_argument("--anchor", type=Path, default=Path("/tmp/mlbench"))
     parser.add_argument("--cap", type=float, default=1800.0, help="seconds: a safety stop")
@@ -148,6 +154,7 @@ def main() -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-fixed-steps-"))
     work.mkdir(parents=True, exist_ok=True)
     build = build_player(args.env, work)
+    args.config_path = with_demo(args.config, args.env, args.demo_steps, work)
     sides = [("ours", ROOT)] + ([("base", args.base_tree.resolve())] if args.base_tree else [])
     runs: list[dict[str, Any]] = []
     for seed in args.seeds:

@@ -164,23 +164,23 @@ def our_run(
     return run
 
 
-def with_demo(case: Case, work: Path) -> Path:
-    """The case's ML-Agents config; with ``demo_steps``, a copy in ``work`` whose every
-    ``demo_path`` names a recording of unitysim's expert (made once per case)."""
-    config = CONFIGS / case.mlagents_config
-    if not case.demo_steps:
+def with_demo(name: str, env: str, demo_steps: int, work: Path) -> Path:
+    """ML-Agents' config ``name``; with ``demo_steps``, a copy in ``work`` whose every
+    ``demo_path`` names a recording of unitysim's expert on ``env`` (made once)."""
+    config = CONFIGS / name
+    if not demo_steps:
         return config
-    demo = work / f"{case.env}-expert.demo"
+    demo = work / f"{env}-expert.demo"
     if not demo.is_file():
         subprocess.run(
             [
                 str(ROOT / ".venv/bin/unity-rollout"),
                 "record-demo",
                 "--env",
-                f"unitysim:{case.env}",
+                f"unitysim:{env}",
                 "--heuristic",
                 "--steps",
-                str(case.demo_steps),
+                str(demo_steps),
                 "--out",
                 str(demo),
             ],
@@ -195,7 +195,7 @@ def with_demo(case: Case, work: Path) -> Path:
         ):
             if section is not None:
                 section["demo_path"] = str(demo)
-    copy = work / case.mlagents_config
+    copy = work / name
     copy.write_text(yaml.safe_dump(data))
     return copy
 
@@ -314,7 +314,7 @@ def main() -> int:
             if args.cap:
                 case = dataclasses.replace(case, cap_s=args.cap)
             build = build_player(case.env, work)
-            mlagents_config = with_demo(case, work)
+            mlagents_config = with_demo(case.mlagents_config, case.env, case.demo_steps, work)
             rounds = []
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 port = 31000 + 10 * seed

@@ -50,6 +50,16 @@ def free_port() -> int:
     raise RuntimeError(f"no free port in {TEST_PORTS}")
 
 
+def free_run(count: int = 8) -> tuple[int, int]:
+    """First and last of ``count`` ports from a free one: the allocator skips any of them
+    another program takes meanwhile, which a one-port range cannot survive."""
+    for _ in range(len(TEST_PORTS)):
+        port = free_port()
+        if port + count - 1 <= TEST_PORTS[-1]:
+            return port, port + count - 1
+    raise RuntimeError(f"no run of {count} ports in {TEST_PORTS}")
+
+
 def wait_gone(pid: int, seconds: float) -> bool:
     """Whether process ``pid`` is gone (or a zombie) within ``seconds``."""
     deadline = time.monotonic() + seconds

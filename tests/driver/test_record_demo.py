@@ -27,7 +27,7 @@ from learners.factory import PolicyFactory
 from learners.policies import ActorCritic
 from rollout.ports import PortAllocator, PortRange
 from tests.driver.test_cli import cli
-from tests.helpers import free_port
+from tests.helpers import free_run
 from unitysim.envs import load
 
 
@@ -65,8 +65,7 @@ def write_checkpoint(path: Path, behaviors: dict[str, BehaviorSpec]) -> dict[str
 
 def record(tmp_path: Path, *args: str, timeout: float = 120) -> tuple[int, str, str]:
     """Runs record-demo on its own ports and registry; checks every lease went back."""
-    first = free_port()
-    ports = PortRange(first, first)
+    ports = PortRange(*free_run())
     result = cli(
         "record-demo",
         *args,
