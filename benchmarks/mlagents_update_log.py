@@ -5,18 +5,17 @@
 
 Each line is ``[step, steps in the buffer]``, read as ``OnPolicyTrainer._update_policy``
 starts: what mlagents-learn 1.1.0 trains on in that update. Nothing in site-packages is
-edited; the method is wrapped once ``mlagents.trainers.trainer_controller`` is imported
-(the launcher's own workarounds have run by then).
+edited: the method is wrapped at run time (``mlagents_hooks.py``).
 """
 
 from __future__ import annotations
 
-import builtins
 import json
 import os
-import runpy
 import sys
 from typing import Any
+
+from mlagents_hooks import run_patched  # benchmarks/mlagents_hooks.py
 
 LOG = os.environ["UPDATE_LOG"]
 
@@ -36,18 +35,7 @@ def wrap() -> None:
 
 
 def main() -> None:
-    launcher, sys.argv = sys.argv[1], sys.argv[1:]
-    plain = builtins.__import__
-
-    def hooked(name: str, *args: Any, **kwargs: Any) -> Any:
-        module = plain(name, *args, **kwargs)
-        if name == "mlagents.trainers.trainer_controller":
-            builtins.__import__ = plain
-            wrap()
-        return module
-
-    builtins.__import__ = hooked
-    runpy.run_path(launcher, run_name="__main__")
+    run_patched(wrap, sys.argv[1], sys.argv[1:])
 
 
 if __name__ == "__main__":
