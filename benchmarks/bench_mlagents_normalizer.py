@@ -1,7 +1,7 @@
 """Does mlagents-learn's acting normalizer, moved by every trajectory as it arrives, buy it
 steps? mlagents-learn 1.1.0 on 3DBall with ML-Agents' ``ppo/3DBall.yaml``, per seed as it
 is and with its acting policy holding the normalizer of its last update (as our workers
-did before ``NumpyActor.follow``), interleaved; steps to the first summary >= 90.
+do), interleaved; steps to the first summary >= 90.
 
     .venv/bin/python benchmarks/bench_mlagents_normalizer.py --seeds 0 1 2 [--json F]
 
