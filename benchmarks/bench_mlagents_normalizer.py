@@ -24,8 +24,6 @@ from typing import Any
 
 from mlagents_hooks import run_patched  # benchmarks/mlagents_hooks.py
 
-HERE = Path(__file__).resolve().parent
-
 
 def freeze_acting_normalizer() -> None:
     """Runs inside mlagents-learn (its own venv): acting reads the last update's copy."""
@@ -78,7 +76,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--anchor", type=Path, default=Path("/tmp/mlbench"))
-    parser.add_argument("--steps", type=int, default=132_000, help="a run stops here")
+    parser.add_argument("--steps", type=int, default=132_000, help="a run short of 90 stops here")
     parser.add_argument("--work", type=Path)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -100,7 +98,7 @@ def main() -> int:
             run = Run(side, seed)
             env = {"PYTHONPATH": str(args.anchor / "shim")}
             log = work / f"{run_id}.log"
-            run_command(command, env, run, signal.SIGTERM, log, None, 600, stop_step=args.steps)
+            run_command(command, env, run, signal.SIGTERM, log, 90.0, 600, stop_step=args.steps)
             hit = run.reached(90.0)
             runs.append({"side": side, "seed": seed, "steps_to_90": hit and hit[1]})
             print(json.dumps(runs[-1]), flush=True)
