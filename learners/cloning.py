@@ -58,7 +58,7 @@ class BehavioralCloning:
         # with memory: minibatches of whole sequences, run from zero memories (ML-Agents')
         self.length = memory.sequence_length if memory is not None else 1
         policy = [p for n, p in network.named_parameters() if not n.startswith(CRITIC)]
-        self.optimizer = torch.optim.Adam(policy, lr=self.initial_lr)
+        self.optimizer = torch.optim.Adam(policy, lr=self.initial_lr, fused=True)
 
     def learning_rate(self, steps: int) -> float:
         """The rate after the behavior's ``steps``: linear to 1e-10 over ``steps`` steps."""

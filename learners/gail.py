@@ -86,7 +86,9 @@ class GAIL(Signal):
         super().__init__(settings)
         self.discriminator = Discriminator(spec, settings)
         self.experts = experts
-        self.optimizer = torch.optim.Adam(self.discriminator.parameters(), settings.learning_rate)
+        self.optimizer = torch.optim.Adam(
+            self.discriminator.parameters(), settings.learning_rate, fused=True
+        )
         self._expert: Transitions | None = None  # the demonstrations on this module's device
 
     def rewards(self, steps: Transitions) -> torch.Tensor:

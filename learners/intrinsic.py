@@ -46,7 +46,9 @@ class RND(Signal):
         super().__init__(settings)
         self.target = Body(spec, settings.network_settings).requires_grad_(False)
         self.predictor = Body(spec, settings.network_settings)
-        self.optimizer = torch.optim.Adam(self.predictor.trained(), settings.learning_rate)
+        self.optimizer = torch.optim.Adam(
+            self.predictor.trained(), settings.learning_rate, fused=True
+        )
 
     def _error(self, steps: Transitions) -> torch.Tensor:
         with torch.no_grad():
@@ -87,7 +89,9 @@ class Curiosity(Signal):
         )
         models = (self.inverse, self.continuous_head, self.discrete_head, self.forward_model)
         trained = [p for m in models if m is not None for p in m.parameters()]
-        self.optimizer = torch.optim.Adam([*self.body.trained(), *trained], settings.learning_rate)
+        self.optimizer = torch.optim.Adam(
+            [*self.body.trained(), *trained], settings.learning_rate, fused=True
+        )
         self.updated = False
 
     def _forward_error(

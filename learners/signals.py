@@ -16,6 +16,7 @@ from batches.expert_steps import ExpertSteps
 from learners.episode_sums import EpisodeSums
 from learners.gail import GAIL
 from learners.intrinsic import RND, Curiosity
+from learners.minibatch import load_optimizer
 from learners.policies import ActorCritic
 from learners.settings import RewardSignalSettings
 from learners.signal_base import Signal, Transitions, xavier
@@ -142,7 +143,7 @@ def signal_states(items: list[Signal]) -> list[dict[str, Any]]:
 def load_signal_states(items: list[Signal], saved: list[dict[str, Any]]) -> None:
     for signal, state in zip(items, saved, strict=True):
         signal.load_state_dict(state["networks"])
-        signal.optimizer.load_state_dict(state["optimizer"])
+        load_optimizer(signal.optimizer, state["optimizer"])  # stays fused
 
 
 def transitions(rows: Rows, next_obs_too: bool = True) -> Transitions:
