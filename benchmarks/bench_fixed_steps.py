@@ -33,7 +33,7 @@ from typing import Any
 from bench_learning import scalars  # benchmarks/bench_learning.py
 from bench_vs_mlagents import build_player, with_demo
 from machine import machine  # benchmarks/machine.py
-from trainer_runs import Run, anchor_command, our_command, run_command
+from trainer_runs import ANCHOR_DIR, Run, anchor_command, our_command, run_command
 
 ROOT = Path(__file__).resolve().parent.parent
 HERE = Path(__file__).resolve().parent
@@ -146,7 +146,7 @@ def main() -> int:
         "--demo-steps", type=int, default=0, help="steps of unitysim's expert for demo_path"
     )
     parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run too")
-    parser.add_argument("--anchor", type=Path, default=Path("/tmp/mlbench"))
+    parser.add_argument("--anchor", type=Path, default=ANCHOR_DIR)
     parser.add_argument("--cap", type=float, default=1800.0, help="seconds: a safety stop")
     parser.add_argument("--work", type=Path, help="keep builds, logs and runs here")
     parser.add_argument("--json", type=Path)

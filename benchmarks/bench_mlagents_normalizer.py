@@ -71,11 +71,11 @@ def freeze_acting_normalizer() -> None:
 def main() -> int:
     from bench_vs_mlagents import CONFIGS, build_player  # our venv from here on
     from machine import machine
-    from trainer_runs import Run, anchor_command, run_command
+    from trainer_runs import ANCHOR_DIR, Run, anchor_command, run_command
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--anchor", type=Path, default=Path("/tmp/mlbench"))
+    parser.add_argument("--anchor", type=Path, default=ANCHOR_DIR)
     parser.add_argument("--steps", type=int, default=132_000, help="a run short of 90 stops here")
     parser.add_argument("--work", type=Path)
     parser.add_argument("--json", type=Path)

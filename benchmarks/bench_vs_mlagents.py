@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import signal
 import statistics
 import subprocess
@@ -35,7 +34,7 @@ from pathlib import Path
 
 import yaml
 from machine import machine  # benchmarks/machine.py
-from trainer_runs import Run, anchor_command, our_command, run_command
+from trainer_runs import ANCHOR_DIR, Run, anchor_command, our_command, run_command
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
@@ -282,7 +281,7 @@ def main() -> int:
     parser.add_argument("--only", nargs="*", default=[], help="case names (e.g. 3DBall-PPO)")
     parser.add_argument("--seeds", type=int, default=3, help="rounds, one seed each (>= 2)")
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--anchor", default=os.environ.get("MLAGENTS_ANCHOR", "/tmp/mlbench"))
+    parser.add_argument("--anchor", type=Path, default=ANCHOR_DIR)
     parser.add_argument(
         "--skip",
         nargs="*",
@@ -296,7 +295,7 @@ def main() -> int:
     parser.add_argument("--json", help="write the results here too")
     parser.add_argument("--work", help="keep builds, logs and run directories here")
     args = parser.parse_args()
-    anchor = Path(args.anchor)
+    anchor = args.anchor
     if not (anchor / "mlagents_learn_launcher.py").is_file():
         print(
             f"error: no mlagents-learn anchor in {anchor}: run the anchor recipe's "

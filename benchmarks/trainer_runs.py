@@ -25,6 +25,8 @@ MEASURES = {  # what a summary line adds, as both trainers print it
 }
 MARK = re.compile(r"\[mlbench-mark\] reset_env_done ([\d.]+)")
 TAG = "UNITY_ROLLOUT_BENCH_RUN"
+# the anchor recipe's work directory (its venv/, shim/ and mlagents_learn_launcher.py)
+ANCHOR_DIR = Path(os.environ.get("MLAGENTS_ANCHOR", "/tmp/mlbench"))
 
 
 @dataclass
