@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 
 from batches.expert_steps import ExpertSteps
+from learners.minibatch import set_learning_rate
 from learners.policies import ActorCritic
 from learners.schedules import LR_END, decay
 from learners.settings import BehavioralCloningSettings, Hyperparameters
@@ -87,8 +88,7 @@ class BehavioralCloning:
                 loss.backward()
                 self.optimizer.step()
                 losses.append(loss.detach())
-        for group in self.optimizer.param_groups:
-            group["lr"] = next_lr
+        set_learning_rate(self.optimizer, next_lr)
         self.lr = next_lr
         return {REPORT: float(torch.stack(losses).mean()) if losses else 0.0}
 
