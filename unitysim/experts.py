@@ -113,66 +113,113 @@ class Expert(ABC):
 
 
 class HallwayExpert(Expert):
-    """Hallway: find the symbol (look around until a ray sees a block) and remember its
-    colour; face the symbol, turn about, and walk down the hallway (steering toward the
-    freest of the rays ahead) until the goal of that colour is in sight; then go to it."""
+    """Hallway: look around a full circle, noting which ways are open as far as the rays
+    reach (the hallway's axis: its side walls are in reach across it) and where the
+    symbol is if in sight; else walk along the hallway until a ray sees it. Its colour
+    tells the goal, and the way to it the hallway's far end: the goals are beyond it.
+    Walk down the middle, rounding the symbol, until the goal of the symbol's colour is in
+    sight; then go to it. Seeing only the other goal, brake and cross the hallway's end.
+
+    The agent keeps its bearings by counting its own turns (each decision of turning is
+    18 degrees, one "step" here) and its speed by its own pushes, as a player would."""
 
     ORANGE_GOAL, RED_GOAL, ORANGE_BLOCK, RED_BLOCK, WALL = range(5)
-    ABOUT_TURN = 10  # decisions of turning: half a circle
+    RAY_STEPS = (0, -2, 2, -4, 4)  # the rays' directions (35 and 70 degrees), in turn steps
+    CIRCLE = 20  # turn steps in a full circle
+    ROUND = 4.0  # the symbol nearer than this ahead: turn off it, to pass it
+    SLACK = 0.2  # the side walls' distances (fractions) may differ this much: "middle"
+    BRAKE = 14.0  # speed (per second) above which it brakes before turning at the goals
+    PUSH, KEEP = 9.0, 0.79  # a decision's push (velocity change), and the speed drag keeps
 
     def __init__(self, seed: int = 0) -> None:
         super().__init__(seed)
         self.goal: dict[int, int] = {}  # agent -> the tag of the goal to reach
-        self.turning: dict[int, int] = {}  # agent -> decisions of its about-turn left
-        self.away: dict[int, int] = {}  # agent -> the turn away from the other goal
-        self.spun: dict[int, int] = {}  # agent -> decisions looking for the wanted goal
+        self.facing: dict[int, int] = {}  # agent -> its turns so far (steps, left positive)
+        self.open: dict[int, list[bool]] = {}  # agent -> open ahead, per facing of its circle
+        self.symbol: dict[int, int] = {}  # agent -> where it first saw the symbol (steps)
+        self.down: dict[int, int] = {}  # agent -> the way down the hallway (steps)
+        self.cross: dict[int, int] = {}  # agent -> the way across to the wanted goal
+        self.speed: dict[int, float] = {}  # agent -> its speed along its facing, estimated
         self.since: dict[int, int] = {}  # agent -> decisions since it saw the wanted goal
 
-    def memories(self) -> list[dict[int, int]]:
-        return [*super().memories(), self.goal, self.turning, self.away, self.spun, self.since]
+    def memories(self) -> list[dict]:
+        own = [self.goal, self.facing, self.open, self.symbol, self.down, self.cross]
+        return [*super().memories(), *own, self.speed, self.since]
 
     def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
         frame = observations[0][:, -35:]  # the newest of the 3 stacked frames
         tags, fractions = rays(frame, 5)
         actions = np.zeros((len(agent_ids), 1), np.int32)
         for row, agent in enumerate(int(a) for a in agent_ids):
-            tag = tags[row]
-            blocks = (tag == self.ORANGE_BLOCK) | (tag == self.RED_BLOCK)
-            wall_close = fractions[row, 0] * RAY_LENGTH < 1.0
-            if agent not in self.goal:
-                if blocks.any():
-                    orange = (tag == self.ORANGE_BLOCK).any()
-                    self.goal[agent] = self.ORANGE_GOAL if orange else self.RED_GOAL
-                else:
-                    actions[row, 0] = self.home(agent, None, wall_close)
-                    continue
-            wanted = tag == self.goal[agent]
-            since = self.since[agent] = 0 if wanted.any() else self.since.get(agent, 99) + 1
-            if since <= self.RECENT:  # the goal in sight, or just lost: walk on toward it
-                actions[row, 0] = self.home(agent, wanted, wall_close)
-            elif agent not in self.turning:  # face the symbol first
-                if blocks[0]:
-                    self.turning[agent] = self.ABOUT_TURN
-                actions[row, 0] = self.home(agent, blocks, wall_close)
-            elif self.turning[agent] > 0:
-                self.turning[agent] -= 1
-                actions[row, 0] = LEFT
-            elif (other := (tag >= 0) & (tag <= self.RED_GOAL) & ~wanted).any():
-                # the other goal: the wanted one is across the hallway's end; look around
-                # (away from it first), walking on a little after each full circle
-                if agent not in self.away:
-                    self.away[agent] = LEFT if toward(other) == RIGHT else RIGHT
-                spun = self.spun[agent] = self.spun.get(agent, 0) + 1
-                actions[row, 0] = self.away[agent] if spun % 26 < 20 else FORWARD
-            elif blocks[:3].any() or wall_close:  # back toward the symbol, or stuck: about
-                self.turning[agent] = self.ABOUT_TURN - 1
-                actions[row, 0] = LEFT
-            else:  # down the hallway: toward the freest of the rays ahead
-                free = fractions[row, :3]
-                best = int(free.argmax())
-                ahead = free[best] - free[0] < 0.05
-                actions[row, 0] = FORWARD if ahead else (RIGHT, LEFT)[best - 1]
+            action = actions[row, 0] = self._act(agent, tags[row], fractions[row])
+            turn = {LEFT: 1, RIGHT: -1}.get(action, 0)
+            self.facing[agent] = self.facing.get(agent, 0) + turn
+            push = {FORWARD: self.PUSH, BACK: -self.PUSH}.get(action, 0.0)
+            self.speed[agent] = (self.speed.get(agent, 0.0) + push) * self.KEEP
         return actions
+
+    def _act(self, agent: int, tag: np.ndarray, free: np.ndarray) -> int:
+        """Rays: 0 ahead, 1 and 2 right and left at 35 degrees, 3 and 4 at 70."""
+        blocks = (tag == self.ORANGE_BLOCK) | (tag == self.RED_BLOCK)
+        facing, fast = self.facing.get(agent, 0), self.speed.get(agent, 0.0) > self.BRAKE
+        if agent not in self.goal and blocks.any():
+            self.goal[agent] = self.ORANGE_GOAL if tag[blocks][0] == self.ORANGE_BLOCK else 1
+            self.symbol[agent] = facing + self.RAY_STEPS[int(np.flatnonzero(blocks)[0])]
+        circle = self.open.setdefault(agent, [])
+        if len(circle) < self.CIRCLE:  # the first look around
+            circle.append(bool(free[0] >= 1.0))
+            return LEFT
+        if agent not in self.goal:  # along the hallway (open ahead, a side wall in reach)
+            return FORWARD if free[0] >= 1.0 and min(free[3], free[4]) < 1.0 else LEFT
+        if agent not in self.down:
+            self.down[agent] = self.axis(circle, self.symbol[agent])
+        wanted = tag == self.goal[agent]
+        other = (tag >= 0) & (tag <= self.RED_GOAL) & ~wanted
+        since = self.since[agent] = 0 if wanted.any() else self.since.get(agent, 99) + 1
+        if since <= self.RECENT:  # the goal in sight, or just lost: to it
+            if fast and not wanted[0]:
+                return BACK
+            return self.home(agent, wanted, free[0] * RAY_LENGTH < 1.0)
+        walls = np.where(tag == self.WALL, free, 1.0)
+        right, left = min(walls[1], walls[3]), min(walls[2], walls[4])  # the side walls
+        if other.any() and agent not in self.cross:  # the wanted goal is across the end
+            seen = self._wrap(facing + self.RAY_STEPS[int(np.flatnonzero(other)[0])])
+            aside = self._wrap(seen - self.down[agent])  # > 0: on the left of the axis
+            on_left = aside > 1 or (aside >= -1 and left < right)
+            self.cross[agent] = self.down[agent] + (-5 if on_left else 5)  # 90 degrees
+        if agent in self.cross:
+            return BACK if fast else self.turn_to(agent, self.cross[agent])
+        if blocks[:3].any() and free[:3][blocks[:3]].min() * RAY_LENGTH < self.ROUND:
+            # round the symbol: off it while it is straight ahead, then on past it
+            return self.side.setdefault(agent, LEFT) if blocks[0] else FORWARD
+        off = abs(right - left)  # toward the middle: up to 54 degrees off the axis
+        shift = min(3, int(off / self.SLACK))
+        bearing = self.down[agent] + (shift if right < left else -shift)
+        return self.turn_to(agent, bearing, slack=1)
+
+    def axis(self, circle: list[bool], symbol: int) -> int:
+        """The way down the hallway (steps): the middle of the run of open facings of the
+        look around nearest the symbol's direction; with the opposite run (the way back)
+        too, their mean, which cancels the lean both get from an agent off the middle."""
+        runs, n = [], len(circle)
+        for i in range(n):  # each run's start: open here, not just before
+            if circle[i] and not circle[i - 1]:
+                length = next((k for k in range(1, n) if not circle[(i + k) % n]), n)
+                runs.append(i + (length - 1) / 2)
+        if not runs:
+            return symbol
+        near = min(runs, key=lambda r: abs(self._wrap(r - symbol)))
+        back = [r for r in runs if abs(self._wrap(r - near - n / 2)) <= 2]
+        middle = near if not back else near + self._wrap(back[0] - near - n / 2) / 2
+        return round(middle)
+
+    def _wrap(self, steps: float) -> float:
+        return (steps + self.CIRCLE / 2) % self.CIRCLE - self.CIRCLE / 2
+
+    def turn_to(self, agent: int, bearing: int, slack: int = 0) -> int:
+        """Toward ``bearing``: on when within ``slack`` steps of it, else turning."""
+        off = self._wrap(bearing - self.facing.get(agent, 0))
+        return FORWARD if abs(off) <= slack else (LEFT if off > 0 else RIGHT)
 
 
 class PyramidsExpert(Expert):

@@ -73,9 +73,48 @@ def test_hallway_rewards_the_goal_matching_the_symbol(right, reward):
     env = make("Hallway")
     output = env.reset()
     up_is_right = env.orange_up[0] != env.red[0]  # the +y goal has the symbol's colour
-    env.pos[0] = (13.0, 2.0 if up_is_right == right else -2.0)
+    env.pos[0] = (22.0, 7.0 if up_is_right == right else -7.0)  # on the goal pad
     (got, _, interrupted) = rows_of(step_until_done(env, output), [0], done=True)[0]
     assert got == pytest.approx(reward, abs=0.01) and not interrupted
+
+
+def test_hallway_is_laid_out_as_the_symbol_finder_area():
+    """As ``HallwayAgent.OnEpisodeBegin`` places things (x along the hallway): the agent
+    at x in [-20, -10], the symbol ahead of it at x in [-5, 5] (the orange O anywhere
+    within 3 across, the red X on the middle line), the goals at the far end, 15 or more
+    beyond the symbol: past it, the agent sees neither (rays reach 12)."""
+    from unitysim.envs.hallway import GOAL_CENTRES, RAY_LENGTH, SYMBOL
+
+    env = make("Hallway", num_areas=8)  # 128 hallways
+    env.reset()
+    symbol = env.centres[:, SYMBOL]
+    assert (env.pos[:, 0] >= -20).all() and (env.pos[:, 0] <= -10).all()
+    assert (np.abs(env.pos[:, 1]) <= 3).all()
+    assert (np.abs(symbol[:, 0]) <= 5).all() and (np.abs(symbol[:, 1]) <= 3).all()
+    assert (symbol[env.red, 1] == 0).all() and np.abs(symbol[~env.red, 1]).max() > 1
+    assert (GOAL_CENTRES[:, 0] - 2.0 - symbol[:, 0].max() > RAY_LENGTH).all()
+    assert 0.3 < env.red.mean() < 0.7 and 0.3 < env.orange_up.mean() < 0.7
+
+
+def test_hallways_symbol_and_walls_stop_the_agent():
+    """The symbol is a 4-wide block the agent walks round, not through; at 4.5 a decision
+    at most, the agent runs the hallway's 49.5 in under 15 decisions."""
+    from unitysim.envs.hallway import SYMBOL
+
+    env = make("Hallway")
+    output = env.reset()
+    env.centres[0, SYMBOL] = (0.0, 0.0)
+    env.pos[0], env.heading[0], env.velocity[0] = (-6.0, 0.0), 0.0, 0.0
+    forward = idle(env, output)  # agent 0 forward, the others still
+    forward["Hallway?team=0"].discrete[0, 0] = 1
+    for _ in range(5):
+        output = env.step(forward)
+    assert env.pos[0, 0] == pytest.approx(-1.0)  # against the block's face (0.5 + 0.5)
+    assert env.velocity[0, 0] == 0.0
+    env.centres[0, SYMBOL] = (100.0, 100.0)  # out of the way: down to the far wall
+    for _ in range(15):
+        output = env.step(forward)
+    assert env.pos[0, 0] == pytest.approx(24.25)  # the far wall, between the goals
 
 
 def test_pyramids_switch_then_pyramid_gives_two():

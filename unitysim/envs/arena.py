@@ -86,6 +86,54 @@ def overlaps(pos: np.ndarray, radius: float, lo: np.ndarray, hi: np.ndarray) -> 
     return inside[..., 0] & inside[..., 1]
 
 
+def glide(
+    pos: np.ndarray,
+    heading: np.ndarray,
+    velocity: np.ndarray,
+    push: np.ndarray,
+    turn: np.ndarray,
+    change: float,
+    drag: float,
+) -> None:
+    """One physics step of a rigid body pushed along its facing, in place: ``push`` (n,)
+    in [-1, 1] adds a velocity change of ``change`` (ForceMode.VelocityChange), linear
+    ``drag`` slows it, ``turn`` (radians) rotates it; ``velocity`` (n, 2) is per second, in
+    the world's frame (a turn does not carry it round)."""
+    heading += turn
+    facing = np.column_stack([np.cos(heading), np.sin(heading)])
+    velocity += change * push[:, None] * facing
+    velocity /= 1.0 + drag * DT
+    pos += velocity * DT
+
+
+def collide(
+    pos: np.ndarray,
+    velocity: np.ndarray,
+    edge: tuple[np.ndarray, np.ndarray],
+    centres: np.ndarray,
+    halves: np.ndarray,
+    radius: float,
+) -> None:
+    """Agents (``pos``, ``velocity`` (n, 2), in place) of ``radius`` that went past the
+    field's ``edge`` (:func:`limits`) or into one of the boxes (``centres`` (n, m, 2),
+    ``halves`` (m, 2) or (n, m, 2)) are put back out along the axis they went in least and
+    lose their velocity along it: they slide along the side, as a rigid body along a static
+    collider."""
+    low, high = edge
+    outside = (pos < low) | (pos > high)
+    velocity[outside] = 0.0
+    np.clip(pos, low, high, out=pos)
+    gap = np.abs(pos[:, None, :] - centres) - (halves + radius)  # (n, m, 2)
+    inside = (gap < 0).all(axis=2)
+    if not inside.any():
+        return
+    rows, which = np.nonzero(inside)
+    axis = gap[rows, which].argmax(axis=1)  # the shallower way out
+    side = np.sign(pos[rows, axis] - centres[rows, which, axis])
+    pos[rows, axis] -= side * gap[rows, which, axis]
+    velocity[rows, axis] = 0.0
+
+
 def uniform_in(
     rng: np.random.Generator, k: int, half: tuple[float, float], margin: float
 ) -> np.ndarray:

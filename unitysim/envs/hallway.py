@@ -1,41 +1,49 @@
 """Hallway: go to the goal whose colour matches the symbol (ML-Agents example, spec-faithful).
 
-Sixteen hallways, one agent each (ids 0..15, no groups). As in the real scene, the agent
-starts facing any way a little way into a 16 x 8 hallway; the symbol, an orange or red
-block, stands near the hallway's start (+-2 across), and the two goals, one orange and one
-red on random sides, at its far end. Rays reach 8, so the symbol is out of sight over
-the last 5 of the 9 to 12 units to the goals: the agent must look for the symbol, then
-remember its colour on the way (ML-Agents trains it with memory). It runs at 6 units/s
-(0.6 a decision), so random play reaches a goal in about 4% of episodes. Touching the
-goal of the symbol's colour sets the reward to +1, the other goal to -0.1; both end the
-episode. Every step costs -1 / MaxStep (3000, interrupted).
+Sixteen hallways, one agent each (ids 0..15, no groups), laid out as ML-Agents'
+``SymbolFinderArea`` prefab and ``HallwayAgent.OnEpisodeBegin`` (x here is the prefab's z,
+along the hallway; y its x, across): a 49.5 x 19 hallway; the agent starts at x in
+[-20, -10], y in [-3, 3], facing any way; the symbol, a 4-wide block, stands across the
+hallway's middle at x in [-5, 5] (the orange "O" at y in [-3, 3], the red "X" at y = 0,
+as the script places them), and the two 4 x 4 goal pads, one orange and one red on
+random sides (y = +-7), lie at the far end (x = 22.29). So the agent passes the symbol on
+its way down the hallway and has it behind it for the last 15 to 25 units to the goals,
+longer than the rays reach and the 3 stacked frames remember: it needs memory (ML-Agents
+trains it with an LSTM). Touching the goal of the symbol's colour sets the reward to +1,
+the other goal to -0.1; both end the episode. Every physics step costs -1 / MaxStep
+(3000, interrupted); a decision is every 6 steps, acted on at each (500 decisions).
 
-Sensors as in the dump: 5 rays over +-60 degrees (tags orange goal, red goal, orange
-block, red block, wall), 3 frames stacked: 105; and StepCount / MaxStep, 3 frames stacked:
-3. Actions: one branch of 5 (none, forward, back, turn right, turn left); nothing masked.
+Movement as the prefab's rigid body: forward or back adds a velocity change of 1.5 per
+step (``agentRunSpeed``), drag 2 slows it (about 37 per second at most, 4.5 a decision),
+a turn is 150 degrees per second (18 a decision); the walls and the symbol stop it.
+Simplified: no friction, no gravity (the agent starts on the floor).
+
+Sensors as in the dump: a RayPerceptionSensor of 5 rays over +-70 degrees, 12 long, a
+sphere cast of radius 0.5 (tags orange goal, red goal, orange block, red block, wall), 3
+frames stacked: 105; and StepCount / MaxStep, 3 frames stacked: 3. Actions: one branch
+of 5 (none, forward, back, turn right, turn left); nothing masked.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import MOVES, ArenaEnv, drive, limits, overlaps, steer
+from unitysim.envs.arena import DT, MOVES, ArenaEnv, collide, glide, limits, overlaps
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
 from unitysim.envs.perception import FrameStack, Rays, perceive
 
-HALF = (8.0, 4.0)
-RADIUS = 0.5
+HALF = (24.75, 9.5)
+RADIUS = 0.5  # the agent is a unit cube
 LIMITS = limits(HALF, RADIUS)
 MAX_STEP = 3000
+PUSH, DRAG, TURN = 1.5, 2.0, np.radians(150.0)  # velocity change per step, drag, turn per s
 ORANGE_GOAL, RED_GOAL, ORANGE_BLOCK, RED_BLOCK, WALL = range(5)
-RAY_LENGTH = 8.0
-RAYS = Rays(2, 60.0, RAY_LENGTH, 5)
-# ray objects of a hallway: the symbol (its place across drawn per episode), the goal at
-# +y, the goal at -y
-CENTERS = np.array([[-6.5, 0.0], [7.5, 2.0], [7.5, -2.0]])
-SIZES = np.array([[0.5, 0.5], [0.5, 0.8], [0.5, 0.8]])
-GOALS_LO, GOALS_HI = CENTERS[1:] - SIZES[1:], CENTERS[1:] + SIZES[1:]
-SYMBOL_ACROSS = 2.0  # the symbol stands within +-2 of the hallway's middle
+RAY_LENGTH, CAST_RADIUS = 12.0, 0.5
+RAYS = Rays(2, 70.0, RAY_LENGTH, 5)
+# the objects of a hallway: the symbol (placed per episode), the goal at +y, the one at -y
+SYMBOL, GOALS = 0, slice(1, 3)
+SIZES = np.array([[0.5, 2.0], [2.0, 2.0], [2.0, 2.0]])  # half sizes
+GOAL_CENTRES = np.array([[22.29, 7.0], [22.29, -7.0]])
 
 
 class Hallway(ArenaEnv):
@@ -51,37 +59,47 @@ class Hallway(ArenaEnv):
         ),
     )
     fields_per_area = 16
+    decision_period = 6
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
         self.red = np.zeros(self.n, dtype=bool)  # the symbol's colour
         self.orange_up = np.zeros(self.n, dtype=bool)  # the orange goal is the one at +y
-        self.centers = np.broadcast_to(CENTERS, (self.n, 3, 2)).copy()  # symbol's y drawn
+        self.centres = np.zeros((self.n, len(SIZES), 2))
+        self.centres[:, GOALS] = GOAL_CENTRES
+        self.velocity = np.zeros((self.n, 2))  # world frame, per second
+        self.push = np.zeros(self.n)  # the stored action: +1 forward, -1 back, 0 none
         self.rays = FrameStack(self.n, 3, RAYS.size)
         self.clock = FrameStack(self.n, 3, 1)
 
     def _begin(self, which: np.ndarray) -> None:
         k = int(which.sum())
+        self.red[which] = red = self.rng.random(k) < 0.5
+        across = np.where(red, 0.0, self.rng.uniform(-3.0, 3.0, k))
+        self.centres[which, SYMBOL] = np.column_stack([self.rng.uniform(-5.0, 5.0, k), across])
         self.pos[which] = np.column_stack(
-            [self.rng.uniform(-5.0, -2.0, k), self.rng.uniform(-2.4, 2.4, k)]
+            [self.rng.uniform(-20.0, -10.0, k), self.rng.uniform(-3.0, 3.0, k)]
         )
         self.heading[which] = self.rng.uniform(-np.pi, np.pi, k)
-        self.centers[which, 0, 1] = self.rng.uniform(-SYMBOL_ACROSS, SYMBOL_ACROSS, k)
-        self.motion[which] = 0.0
+        self.velocity[which] = 0.0
+        self.push[which] = 0.0
         self.turn[which] = 0.0
-        self.red[which] = self.rng.random(k) < 0.5
         self.orange_up[which] = self.rng.random(k) < 0.5
         self.rays.clear(which)
         self.clock.clear(which)
 
     def _act(self, rows: np.ndarray, actions: Actions) -> None:
         c = MOVES[np.clip(actions.discrete[:, 0], 0, 4)]
-        self.motion[rows], self.turn[rows] = steer(c[:, 0], c[:, 1], c[:, 2], 6.0, np.pi)
+        self.push[rows], self.turn[rows] = c[:, 0], c[:, 2] * TURN * DT
 
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
-        drive(self.pos, self.heading, self.motion, self.turn, *LIMITS)
+        glide(self.pos, self.heading, self.velocity, self.push, self.turn, PUSH, DRAG)
+        symbol = self.centres[:, SYMBOL : SYMBOL + 1]
+        collide(self.pos, self.velocity, LIMITS, symbol, SIZES[SYMBOL:1], RADIUS)
         self.reward -= 1.0 / MAX_STEP
-        touched = overlaps(self.pos, RADIUS, GOALS_LO, GOALS_HI)
+        touched = overlaps(
+            self.pos, RADIUS, GOAL_CENTRES - SIZES[GOALS], GOAL_CENTRES + SIZES[GOALS]
+        )
         done = touched.any(axis=1)
         if done.any():  # SetReward: the step's reward is replaced
             # the touched goal is orange if it is the +y one and orange is up, or vice versa
@@ -92,12 +110,15 @@ class Hallway(ArenaEnv):
 
     def _observe(self, behavior: int, rows: np.ndarray) -> list[np.ndarray]:
         up = self.orange_up[rows]
-        table = np.empty((len(rows), 4), dtype=np.int64)
-        table[:, 0] = np.where(self.red[rows], RED_BLOCK, ORANGE_BLOCK)
+        table = np.empty((len(rows), len(SIZES) + 1), dtype=np.int64)
+        table[:, SYMBOL] = np.where(self.red[rows], RED_BLOCK, ORANGE_BLOCK)
         table[:, 1] = np.where(up, ORANGE_GOAL, RED_GOAL)
         table[:, 2] = np.where(up, RED_GOAL, ORANGE_GOAL)
         table[:, 3] = WALL
-        lo, hi = self.centers[rows] - SIZES, self.centers[rows] + SIZES
-        (frame,) = perceive((RAYS,), self.pos[rows], self.heading[rows], lo, hi, HALF, table)
+        # a sphere cast: the ray's centre line against everything grown by its radius
+        grown = SIZES + CAST_RADIUS
+        lo, hi = self.centres[rows] - grown, self.centres[rows] + grown
+        half = (HALF[0] - CAST_RADIUS, HALF[1] - CAST_RADIUS)
+        (frame,) = perceive((RAYS,), self.pos[rows], self.heading[rows], lo, hi, half, table)
         time = (self.episode_steps[rows] / MAX_STEP).astype(np.float32)[:, None]
         return [self.rays.push(rows, frame), self.clock.push(rows, time)]

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import DT, FAR, MOVES, ArenaEnv, limits, overlaps
+from unitysim.envs.arena import DT, FAR, MOVES, ArenaEnv, collide, glide, limits, overlaps
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
 from unitysim.envs.perception import Rays, perceive
 
@@ -118,12 +118,11 @@ class Pyramids(ArenaEnv):
         self.push[rows], self.turn[rows] = c[:, 0], c[:, 2] * TURN * DT
 
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
-        self.heading += self.turn
-        facing = np.column_stack([np.cos(self.heading), np.sin(self.heading)])
-        self.velocity += PUSH * self.push[:, None] * facing
-        self.velocity /= 1.0 + DRAG * DT  # the rigid body's linear drag
-        self.pos += self.velocity * DT
-        self._collide()
+        glide(self.pos, self.heading, self.velocity, self.push, self.turn, PUSH, DRAG)
+        walls = np.broadcast_to(WALL_CENTRES, (self.n, *WALL_CENTRES.shape))
+        centres = np.concatenate([self.objects[:, STONES], walls], axis=1)
+        halves = np.concatenate([SIZES[STONES], WALL_HALVES])
+        collide(self.pos, self.velocity, LIMITS, centres, halves, RADIUS)  # walls, stones
         self.reward -= 1.0 / MAX_STEP
         touched = overlaps(
             self.pos, RADIUS, self.objects[:, :2] - SIZES[:2], self.objects[:, :2] + SIZES[:2]
@@ -137,27 +136,6 @@ class Pyramids(ArenaEnv):
             self.reward[done] = 2.0  # SetReward: the step's reward is replaced
         interrupted = ~done & (self.episode_steps >= MAX_STEP)
         return done | interrupted, interrupted
-
-    def _collide(self) -> None:
-        """An agent that went into a wall, a stone pyramid or the edge is put back out
-        along the axis it went in least, and loses its velocity along that axis (it
-        slides along the side)."""
-        low, high = LIMITS
-        outside = (self.pos < low) | (self.pos > high)
-        self.velocity[outside] = 0.0
-        np.clip(self.pos, low, high, out=self.pos)
-        walls = np.broadcast_to(WALL_CENTRES, (self.n, *WALL_CENTRES.shape))
-        centres = np.concatenate([self.objects[:, STONES], walls], axis=1)
-        halves = np.concatenate([SIZES[STONES], WALL_HALVES])
-        gap = np.abs(self.pos[:, None, :] - centres) - (halves + RADIUS)  # (n, boxes, 2)
-        inside = (gap < 0).all(axis=2)
-        if not inside.any():
-            return
-        rows, which = np.nonzero(inside)
-        axis = gap[rows, which].argmax(axis=1)  # the shallower way out
-        side = np.sign(self.pos[rows, axis] - centres[rows, which, axis])
-        self.pos[rows, axis] -= side * gap[rows, which, axis]
-        self.velocity[rows, axis] = 0.0
 
     def _observe(self, behavior: int, rows: np.ndarray) -> list[np.ndarray]:
         centers = self.objects[rows]
