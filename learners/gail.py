@@ -63,16 +63,20 @@ class Discriminator(nn.Module):
         return [*obs, torch.cat([actions, steps.done.float().unsqueeze(-1)], dim=-1)]
 
     def estimate(
-        self, inputs: list[torch.Tensor], noise: bool
+        self, inputs: list[torch.Tensor], noise: bool, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """D of each step, and the bottleneck's mean (``use_vail``)."""
+        """D of each step, and the bottleneck's mean (``use_vail``; sampled around it with
+        ``noise``, from ``generator``)."""
         names = self.network.sensor_names
         encoded = self.network.encode(dict(zip(names, inputs[: len(names)], strict=True)))
         hidden = self.body(torch.cat([encoded, *inputs[len(names) :]], dim=-1))
         mu = None
         if self.use_vail:
             mu = self.z_mu(hidden)
-            hidden = mu + torch.randn_like(mu) * self.z_sigma * float(noise)
+            hidden = mu
+            if noise:
+                draw = torch.randn(mu.shape, generator=generator, device=mu.device)
+                hidden = mu + draw * self.z_sigma
         return self.estimator(hidden).squeeze(-1), mu
 
 
@@ -99,13 +103,15 @@ class GAIL(Signal):
     def update_normalization(self, steps: Transitions) -> None:
         self.discriminator.network.update_normalization(steps.obs)
 
-    def update(self, steps: Transitions) -> dict[str, float]:
-        expert = self._expert_sample(len(next(iter(steps.obs.values()))))
+    def update(
+        self, steps: Transitions, generator: torch.Generator | None = None
+    ) -> dict[str, float]:
+        expert = self._expert_sample(len(next(iter(steps.obs.values()))), generator)
         self.discriminator.network.update_normalization(expert.obs)
         disc = self.discriminator
         policy_in, expert_in = disc.inputs(steps), disc.inputs(expert)
-        policy_d, policy_mu = disc.estimate(policy_in, noise=True)
-        expert_d, expert_mu = disc.estimate(expert_in, noise=True)
+        policy_d, policy_mu = disc.estimate(policy_in, noise=True, generator=generator)
+        expert_d, expert_mu = disc.estimate(expert_in, noise=True, generator=generator)
         loss = -(torch.log(expert_d + EPSILON) + torch.log(1.0 - policy_d + EPSILON)).mean()
         stats = {
             "Policy/GAIL Policy Estimate": float(policy_d.detach().mean()),
@@ -119,7 +125,7 @@ class GAIL(Signal):
             kl = (-(1 + var.log() - 0.5 * expert_mu**2 - 0.5 * policy_mu**2 - var).sum(-1)).mean()
             total = total + disc.beta * (kl - MUTUAL_INFORMATION)
             stats["Losses/GAIL KL Loss"] = float(kl.detach())
-        penalty = GRADIENT_PENALTY * self._gradient_penalty(policy_in, expert_in)
+        penalty = GRADIENT_PENALTY * self._gradient_penalty(policy_in, expert_in, generator)
         stats["Policy/GAIL Grad Mag Loss"] = float(penalty.detach())
         self._step(total + penalty)
         if disc.use_vail:  # dual ascent on beta (ML-Agents: with the loss this step used)
@@ -130,21 +136,24 @@ class GAIL(Signal):
         return stats
 
     def _gradient_penalty(
-        self, policy_in: list[torch.Tensor], expert_in: list[torch.Tensor]
+        self,
+        policy_in: list[torch.Tensor],
+        expert_in: list[torch.Tensor],
+        generator: torch.Generator | None,
     ) -> torch.Tensor:
         """(|dD/dx| - 1)^2 at random points between policy and expert inputs; the
         gradient with respect to the first input, as ML-Agents takes it."""
         mixed = []
         for policy, expert in zip(policy_in, expert_in, strict=True):
-            share = torch.rand_like(policy.float())
+            share = torch.rand(policy.shape, generator=generator, device=policy.device)
             point = share * policy.float() + (1 - share) * expert.float()
             mixed.append(point.requires_grad_(True))
-        estimate, _ = self.discriminator.estimate(mixed, noise=True)
+        estimate, _ = self.discriminator.estimate(mixed, noise=True, generator=generator)
         (gradient,) = torch.autograd.grad(estimate.sum(), mixed[0], create_graph=True)
         norm = (gradient.flatten(1).square().sum(-1) + EPSILON).sqrt()
         return (norm - 1).square().mean()
 
-    def _expert_sample(self, count: int) -> Transitions:
+    def _expert_sample(self, count: int, generator: torch.Generator | None) -> Transitions:
         device = next(self.parameters()).device
         if self._expert is None:
             e, names = self.experts, self.discriminator.network.sensor_names
@@ -159,5 +168,5 @@ class GAIL(Signal):
                 torch.as_tensor(e.discrete, device=device),
                 torch.as_tensor(e.done, device=device),
             )
-        index = torch.randint(len(self.experts), (count,), device=device)
+        index = torch.randint(len(self.experts), (count,), generator=generator, device=device)
         return self._expert[index]

@@ -59,7 +59,9 @@ class RND(Signal):
         with torch.no_grad():
             return self._error(steps)
 
-    def update(self, steps: Transitions) -> dict[str, float]:
+    def update(
+        self, steps: Transitions, generator: torch.Generator | None = None
+    ) -> dict[str, float]:
         loss = self._error(steps).mean()
         self._step(loss)
         return {"Losses/RND Loss": float(loss.detach())}
@@ -109,7 +111,9 @@ class Curiosity(Signal):
             error = self._forward_error(self.body(steps.obs), self.body(steps.next_obs), steps)
         return error.clamp(max=1.0 / self.strength) if self.strength else error
 
-    def update(self, steps: Transitions) -> dict[str, float]:
+    def update(
+        self, steps: Transitions, generator: torch.Generator | None = None
+    ) -> dict[str, float]:
         self.updated = True
         state, after = self.body(steps.obs), self.body(steps.next_obs)
         forward = self._forward_error(state, after, steps).mean()

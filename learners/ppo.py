@@ -34,6 +34,7 @@ set, steps acted by weights more than that many versions old are dropped from th
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -211,10 +212,8 @@ class PPO:
 
         lr, epsilon, beta = self.schedules(progress)
         self.step.start(self._bind(advantage, value_target), epsilon, beta)
-        self.epochs(train)
+        signals = self.train_beside(train)
         mean = self.step.means()
-        h = self.settings.hyperparameters
-        signals = self.signals.train(train, h.num_epoch, h.batch_size)
         return {
             **signals,
             **self.signals.report(value, train),
@@ -228,6 +227,22 @@ class PPO:
             "Policy/Stale Steps Dropped": float(self.stale_steps),
             "Policy/Samples": float(len(train)),
         }
+
+    def train_beside(self, train: torch.Tensor) -> dict[str, float]:
+        """PPO's epochs, and the reward signals' networks trained beside them: on a CPU
+        in a thread of their own (their networks share nothing with the policy's, and
+        their steps release the GIL), from a generator seeded from the global one first,
+        so that a seed still gives one run. On a GPU (a CUDA graph's capture may not
+        meet another thread's work) one after the other. Returns the signals' losses."""
+        h = self.settings.hyperparameters
+        if not self.signals.items or self.compute.torch_device.type != "cpu":
+            self.epochs(train)
+            return self.signals.train(train, h.num_epoch, h.batch_size)
+        generator = torch.Generator().manual_seed(int(torch.randint(2**62, ())))
+        with ThreadPoolExecutor(1, thread_name_prefix="signals") as beside:
+            losses = beside.submit(self.signals.train, train, h.num_epoch, h.batch_size, generator)
+            self.epochs(train)
+            return losses.result()
 
     def schedules(self, progress: float) -> tuple[float, float, float]:
         """This update's learning rate (set in the optimizer), epsilon and beta."""

@@ -92,7 +92,11 @@ class Signal(nn.Module):
     def rewards(self, steps: Transitions) -> torch.Tensor:
         raise NotImplementedError
 
-    def update(self, steps: Transitions) -> dict[str, float]:
+    def update(
+        self, steps: Transitions, generator: torch.Generator | None = None
+    ) -> dict[str, float]:
+        """One training step on ``steps``; its random draws from ``generator`` (None: the
+        global one), so that it can train beside PPO's epochs in a thread of its own."""
         raise NotImplementedError
 
     def update_normalization(self, steps: Transitions) -> None:

@@ -52,7 +52,7 @@ def make_signals(
 
 
 class Signals:
-    """``rewards`` on the update's rows (before it trains), ``train`` after its epochs,
+    """``rewards`` on the update's rows (before it trains), ``train`` beside its epochs,
     then ``report``; ``experts``: gail's demonstrations, by ``demo_path``."""
 
     def __init__(
@@ -96,22 +96,30 @@ class Signals:
         self._finished = self._episodes.finished(rows.agent, rows.ended, self._rewards)
         return [(r, s.gamma, s.ignore_done) for r, s in zip(self._rewards, self.items, strict=True)]
 
-    def train(self, train: torch.Tensor, num_epoch: int, batch_size: int) -> dict[str, float]:
+    def train(
+        self,
+        train: torch.Tensor,
+        num_epoch: int,
+        batch_size: int,
+        generator: torch.Generator | None = None,
+    ) -> dict[str, float]:
         """Each signal's networks: one step per minibatch of the trained rows, as many
-        minibatches as PPO's epochs took (the remainder left out); the mean losses."""
+        minibatches as PPO's epochs took (the remainder left out); the mean losses. Random
+        draws come from ``generator`` (None: the global one)."""
         if self._steps is None:
             return {}
         sums: dict[str, float] = {}
         count = 0
         for _ in range(num_epoch):
-            order = train[torch.randperm(len(train), device=train.device)]
+            shuffled = torch.randperm(len(train), generator=generator, device=train.device)
+            order = train[shuffled]
             for index in order.split(batch_size):
                 if len(index) < batch_size:
                     continue
                 count += 1
                 minibatch = self._steps[index]
                 for signal in self.items:
-                    for name, value in signal.update(minibatch).items():
+                    for name, value in signal.update(minibatch, generator).items():
                         sums[name] = sums.get(name, 0.0) + value
         self._steps = None
         return {name: total / max(count, 1) for name, total in sums.items()}

@@ -201,3 +201,28 @@ def test_gail_refuses_demonstrations_of_another_spec():
     gail = RewardSignalSettings("gail", network_settings=SMALL, demo_path="walker.demo")
     with pytest.raises(ValueError, match=r"reward_signals.gail: walker.demo: actions"):
         ppo_with((gail,), experts={"walker.demo": other})
+
+
+def test_signals_train_beside_ppos_epochs_and_one_seed_gives_one_run():
+    """On a CPU the signals' steps run in a thread beside PPO's epochs, drawing from a
+    generator seeded from the global one: the signals and the policy both train, and two
+    updates from one seed end with the same parameters, bit for bit."""
+    gail = RewardSignalSettings("gail", network_settings=SMALL, demo_path="e.demo", use_vail=True)
+    curiosity = RewardSignalSettings("curiosity", network_settings=SMALL)
+    torch.manual_seed(1)
+    experts = {"e.demo": expert_steps_of(torch.randn(64, 4), torch.ones(64, 1).long())}
+    batch = segment(vector_spec(4, branches=(2,)), rows=4, steps=16)
+    ends = []
+    for _ in range(2):
+        ppo = ppo_with((curiosity, gail), experts)
+        start = [p.detach().clone() for p in ppo.signals.items[1].parameters()]
+        policy = [p.detach().clone() for p in ppo.network.parameters()]
+        ppo.add(batch.clone(), torch.zeros(64).long())
+        report = ppo.update(progress=0.1)
+        assert "Losses/GAIL Loss" in report and "Losses/Curiosity Forward Loss" in report
+        trained = [p.detach().clone() for p in ppo.signals.items[1].parameters()]
+        assert any(not torch.equal(a, b) for a, b in zip(start, trained, strict=True))
+        now = [p.detach().clone() for p in ppo.network.parameters()]
+        assert any(not torch.equal(a, b) for a, b in zip(policy, now, strict=True))
+        ends.append([*trained, *now, *ppo.signals.items[0].parameters()])
+    assert all(torch.equal(a, b) for a, b in zip(*ends, strict=True))
