@@ -124,7 +124,7 @@ def update_in_order(algorithm: Any) -> dict[str, float]:
     takes them here (its trainer shuffles); the update's report."""
     import torch
 
-    in_order = lambda size, device=None: torch.arange(size, device=device)  # noqa: E731
+    in_order = lambda size, device=None, generator=None: torch.arange(size, device=device)  # noqa: E731
     shuffle, torch.randperm = torch.randperm, in_order
     try:
         return algorithm.update(0.0)
