@@ -7,7 +7,7 @@ Python sends, so the action recorded with each step *is* the action taken, by
 construction, with no side channel to keep in step with the protocol, and it drives a
 unitysim player exactly as any policy does. An expert that used the simulator's hidden
 state could also demonstrate what no learner can imitate from the observations; this one
-cannot. The price is memory kept per agent id (Hallway's symbol, Pyramids' search), which
+cannot. The price is memory kept per agent id (Hallway's symbol and bearings, Pyramids' search), which
 :meth:`Expert.forget` drops when an agent's episode ends, as a Unity agent resets its own
 fields in ``OnEpisodeBegin``.
 
@@ -54,7 +54,7 @@ def toward(seen: np.ndarray) -> int | None:
 class Expert(ABC):
     """A scripted policy for one behavior: observations in, discrete actions out.
 
-    Rays are 18 degrees of turn per decision apart from where they were, and 23 to 30
+    Rays are 18 degrees of turn per decision apart from where they were, and 23 to 35
     degrees apart from each other, so a target seen by a side ray is out of sight after
     the turn toward it: an expert keeps walking toward where it last saw its target for a
     few decisions (the bearing grows as it nears, and a side ray finds it again), and
