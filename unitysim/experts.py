@@ -7,9 +7,9 @@ Python sends, so the action recorded with each step *is* the action taken, by
 construction, with no side channel to keep in step with the protocol, and it drives a
 unitysim player exactly as any policy does. An expert that used the simulator's hidden
 state could also demonstrate what no learner can imitate from the observations; this one
-cannot. The price is memory kept per agent id (Hallway's symbol and bearings, Pyramids' search), which
-:meth:`Expert.forget` drops when an agent's episode ends, as a Unity agent resets its own
-fields in ``OnEpisodeBegin``.
+cannot. The price is memory kept per agent id (Hallway's symbol and bearings, Pyramids'
+search), which :meth:`Expert.forget` drops when an agent's episode ends, as a Unity agent
+resets its own fields in ``OnEpisodeBegin``.
 
 Each expert plays one behavior, for discrete actions only (both examples have one branch
 of 5: none, forward, back, turn right, turn left). Ray sensors are read as
