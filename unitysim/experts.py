@@ -163,7 +163,8 @@ class HallwayExpert(Expert):
         blocks = (tag == self.ORANGE_BLOCK) | (tag == self.RED_BLOCK)
         facing, fast = self.facing.get(agent, 0), self.speed.get(agent, 0.0) > self.BRAKE
         if agent not in self.goal and blocks.any():
-            self.goal[agent] = self.ORANGE_GOAL if tag[blocks][0] == self.ORANGE_BLOCK else 1
+            orange = tag[blocks][0] == self.ORANGE_BLOCK
+            self.goal[agent] = self.ORANGE_GOAL if orange else self.RED_GOAL
             self.symbol[agent] = facing + self.RAY_STEPS[int(np.flatnonzero(blocks)[0])]
         circle = self.open.setdefault(agent, [])
         if len(circle) < self.CIRCLE:  # the first look around

@@ -44,6 +44,10 @@ RAYS = Rays(2, 70.0, RAY_LENGTH, 5)
 SYMBOL, GOALS = 0, slice(1, 3)
 SIZES = np.array([[0.5, 2.0], [2.0, 2.0], [2.0, 2.0]])  # half sizes
 GOAL_CENTRES = np.array([[22.29, 7.0], [22.29, -7.0]])
+GOALS_LO, GOALS_HI = GOAL_CENTRES - SIZES[GOALS], GOAL_CENTRES + SIZES[GOALS]
+# a sphere cast: the ray's centre line against everything grown by its radius
+SEEN_SIZES = SIZES + CAST_RADIUS
+SEEN_HALF = (HALF[0] - CAST_RADIUS, HALF[1] - CAST_RADIUS)
 
 
 class Hallway(ArenaEnv):
@@ -97,9 +101,7 @@ class Hallway(ArenaEnv):
         symbol = self.centres[:, SYMBOL : SYMBOL + 1]
         collide(self.pos, self.velocity, LIMITS, symbol, SIZES[SYMBOL:1], RADIUS)
         self.reward -= 1.0 / MAX_STEP
-        touched = overlaps(
-            self.pos, RADIUS, GOAL_CENTRES - SIZES[GOALS], GOAL_CENTRES + SIZES[GOALS]
-        )
+        touched = overlaps(self.pos, RADIUS, GOALS_LO, GOALS_HI)
         done = touched.any(axis=1)
         if done.any():  # SetReward: the step's reward is replaced
             # the touched goal is orange if it is the +y one and orange is up, or vice versa
@@ -115,10 +117,8 @@ class Hallway(ArenaEnv):
         table[:, 1] = np.where(up, ORANGE_GOAL, RED_GOAL)
         table[:, 2] = np.where(up, RED_GOAL, ORANGE_GOAL)
         table[:, 3] = WALL
-        # a sphere cast: the ray's centre line against everything grown by its radius
-        grown = SIZES + CAST_RADIUS
-        lo, hi = self.centres[rows] - grown, self.centres[rows] + grown
-        half = (HALF[0] - CAST_RADIUS, HALF[1] - CAST_RADIUS)
-        (frame,) = perceive((RAYS,), self.pos[rows], self.heading[rows], lo, hi, half, table)
+        lo, hi = self.centres[rows] - SEEN_SIZES, self.centres[rows] + SEEN_SIZES
+        pos, heading = self.pos[rows], self.heading[rows]
+        (frame,) = perceive((RAYS,), pos, heading, lo, hi, SEEN_HALF, table)
         time = (self.episode_steps[rows] / MAX_STEP).astype(np.float32)[:, None]
         return [self.rays.push(rows, frame), self.clock.push(rows, time)]
