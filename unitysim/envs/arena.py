@@ -14,7 +14,9 @@ Unity side of them is the same, and lives here once:
   decision at once, as in 3DBall.
 - :func:`steer` / :func:`drive`: moving agents by forward / right / turn commands; ``AXIS``
   maps a discrete branch value (0 none, 1 plus, 2 minus) to a sign, ``MOVES`` the actions
-  of the one-branch examples to commands.
+  of the one-branch examples to commands; :class:`RigidBodyEnv`, agents that move as Unity
+  rigid bodies pushed by those commands (Hallway, Pyramids), kept out of walls by
+  :func:`collide`.
 
 What the agents sense (ray casts, frame stacks) is in :mod:`unitysim.envs.perception`; the
 rules the two ball games share (SoccerTwos, StrikersVsGoalie) in
@@ -84,26 +86,6 @@ def overlaps(pos: np.ndarray, radius: float, lo: np.ndarray, hi: np.ndarray) -> 
     p = pos[:, None, :]
     inside = (p + radius > lo) & (p - radius < hi)
     return inside[..., 0] & inside[..., 1]
-
-
-def glide(
-    pos: np.ndarray,
-    heading: np.ndarray,
-    velocity: np.ndarray,
-    push: np.ndarray,
-    turn: np.ndarray,
-    change: float,
-    drag: float,
-) -> None:
-    """One physics step of a rigid body pushed along its facing, in place: ``push`` (n,)
-    in [-1, 1] adds a velocity change of ``change`` (ForceMode.VelocityChange), linear
-    ``drag`` slows it, ``turn`` (radians) rotates it; ``velocity`` (n, 2) is per second, in
-    the world's frame (a turn does not carry it round)."""
-    heading += turn
-    facing = np.column_stack([np.cos(heading), np.sin(heading)])
-    velocity += change * push[:, None] * facing
-    velocity /= 1.0 + drag * DT
-    pos += velocity * DT
 
 
 def collide(
@@ -332,3 +314,38 @@ class ArenaEnv(SimEnv):
             if behavior.branches
             else None,
         )
+
+
+class RigidBodyEnv(ArenaEnv):
+    """Agents that are Unity rigid bodies driven by one branch of ``MOVES`` (Hallway,
+    Pyramids): forward or back adds a velocity change of ``push_change`` a physics step
+    along the facing (ForceMode.VelocityChange), linear ``drag`` slows it, a turn is
+    ``turn_rate`` radians a second. ``velocity`` (n, 2) is per second in the world's frame
+    (a turn does not carry it round); subclasses keep it out of walls (:func:`collide`)."""
+
+    push_change: ClassVar[float]
+    drag: ClassVar[float]
+    turn_rate: ClassVar[float]
+
+    def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
+        super().__init__(rng, num_areas, params)
+        self.velocity = np.zeros((self.n, 2))
+        self.push = np.zeros(self.n)  # the stored action: +1 forward, -1 back, 0 none
+
+    def _stand(self, which: np.ndarray) -> None:
+        """At an episode's begin: at rest, no action stored."""
+        self.velocity[which] = 0.0
+        self.push[which] = 0.0
+        self.turn[which] = 0.0
+
+    def _act(self, rows: np.ndarray, actions: Actions) -> None:
+        c = MOVES[np.clip(actions.discrete[:, 0], 0, 4)]
+        self.push[rows], self.turn[rows] = c[:, 0], c[:, 2] * self.turn_rate * DT
+
+    def _glide(self) -> None:
+        """One physics step of every body, before collisions."""
+        self.heading += self.turn
+        facing = np.column_stack([np.cos(self.heading), np.sin(self.heading)])
+        self.velocity += self.push_change * self.push[:, None] * facing
+        self.velocity /= 1.0 + self.drag * DT
+        self.pos += self.velocity * DT

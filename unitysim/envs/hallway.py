@@ -28,15 +28,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import DT, MOVES, ArenaEnv, collide, glide, limits, overlaps
-from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+from unitysim.envs.arena import RigidBodyEnv, collide, limits, overlaps
+from unitysim.envs.base import Behavior, Parameters, Sensor
 from unitysim.envs.perception import FrameStack, Rays, perceive
 
 HALF = (24.75, 9.5)
 RADIUS = 0.5  # the agent is a unit cube
 LIMITS = limits(HALF, RADIUS)
 MAX_STEP = 3000
-PUSH, DRAG, TURN = 1.5, 2.0, np.radians(150.0)  # velocity change per step, drag, turn per s
 ORANGE_GOAL, RED_GOAL, ORANGE_BLOCK, RED_BLOCK, WALL = range(5)
 RAY_LENGTH, CAST_RADIUS = 12.0, 0.5
 RAYS = Rays(2, 70.0, RAY_LENGTH, 5)
@@ -50,7 +49,7 @@ SEEN_SIZES = SIZES + CAST_RADIUS
 SEEN_HALF = (HALF[0] - CAST_RADIUS, HALF[1] - CAST_RADIUS)
 
 
-class Hallway(ArenaEnv):
+class Hallway(RigidBodyEnv):
     name = "Hallway"
     behaviors = (
         Behavior(
@@ -63,6 +62,7 @@ class Hallway(ArenaEnv):
         ),
     )
     fields_per_area = 16
+    push_change, drag, turn_rate = 1.5, 2.0, float(np.radians(150.0))
     decision_period = 6
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
@@ -71,8 +71,6 @@ class Hallway(ArenaEnv):
         self.orange_up = np.zeros(self.n, dtype=bool)  # the orange goal is the one at +y
         self.centres = np.zeros((self.n, len(SIZES), 2))
         self.centres[:, GOALS] = GOAL_CENTRES
-        self.velocity = np.zeros((self.n, 2))  # world frame, per second
-        self.push = np.zeros(self.n)  # the stored action: +1 forward, -1 back, 0 none
         self.rays = FrameStack(self.n, 3, RAYS.size)
         self.clock = FrameStack(self.n, 3, 1)
 
@@ -85,19 +83,13 @@ class Hallway(ArenaEnv):
             [self.rng.uniform(-20.0, -10.0, k), self.rng.uniform(-3.0, 3.0, k)]
         )
         self.heading[which] = self.rng.uniform(-np.pi, np.pi, k)
-        self.velocity[which] = 0.0
-        self.push[which] = 0.0
-        self.turn[which] = 0.0
+        self._stand(which)
         self.orange_up[which] = self.rng.random(k) < 0.5
         self.rays.clear(which)
         self.clock.clear(which)
 
-    def _act(self, rows: np.ndarray, actions: Actions) -> None:
-        c = MOVES[np.clip(actions.discrete[:, 0], 0, 4)]
-        self.push[rows], self.turn[rows] = c[:, 0], c[:, 2] * TURN * DT
-
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
-        glide(self.pos, self.heading, self.velocity, self.push, self.turn, PUSH, DRAG)
+        self._glide()
         symbol = self.centres[:, SYMBOL : SYMBOL + 1]
         collide(self.pos, self.velocity, LIMITS, symbol, SIZES[SYMBOL:1], RADIUS)
         self.reward -= 1.0 / MAX_STEP

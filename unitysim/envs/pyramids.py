@@ -30,15 +30,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import DT, FAR, MOVES, ArenaEnv, collide, glide, limits, overlaps
-from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+from unitysim.envs.arena import FAR, RigidBodyEnv, collide, limits, overlaps
+from unitysim.envs.base import Behavior, Parameters, Sensor
 from unitysim.envs.perception import Rays, perceive
 
 HALF = (49.5, 49.5)
 SPAWN = 30.0  # spawn areas' centres: -30, 0, 30 on each axis
 SPAWN_REACH = 25.0 / 2.1  # PlaceObject: within scale / 2.1 of the centre
 RADIUS = 0.5
-PUSH, DRAG, TURN = 2.0, 2.0, np.radians(200.0)  # velocity change per step, drag, turn per s
 LIMITS = limits(HALF, RADIUS)
 MAX_STEP = 5000
 BLOCK, WALL, GOAL, SWITCH_OFF, SWITCH_ON, STONE = range(6)
@@ -68,7 +67,7 @@ WALL_CENTRES, WALL_HALVES = (WALLS_LO + WALLS_HI) / 2, (WALLS_HI - WALLS_LO) / 2
 LOW = np.array([SWITCH_OFF, BLOCK, *[STONE] * 6, *[WALL] * len(WALLS_LO), WALL])  # then the edge
 
 
-class Pyramids(ArenaEnv):
+class Pyramids(RigidBodyEnv):
     name = "Pyramids"
     behaviors = (
         Behavior(
@@ -83,14 +82,13 @@ class Pyramids(ArenaEnv):
         ),
     )
     fields_per_area = 16
+    push_change, drag, turn_rate = 2.0, 2.0, float(np.radians(200.0))
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
         self.objects = np.zeros((self.n, len(SIZES), 2))  # centres; the pyramid FAR until raised
         self.switched = np.zeros(self.n, dtype=bool)
         self.pyramid_area = np.zeros(self.n, dtype=np.intp)  # where it rises when switched
-        self.velocity = np.zeros((self.n, 2))  # world frame, per second
-        self.push = np.zeros(self.n)  # the stored action: +1 forward, -1 back, 0 none
 
     def _begin(self, which: np.ndarray) -> None:
         k = int(which.sum())
@@ -98,9 +96,7 @@ class Pyramids(ArenaEnv):
         spots = self._spot_in(areas.ravel()).reshape(k, 9, 2)
         self.pos[which] = spots[:, 0]
         self.heading[which] = self.rng.uniform(-np.pi, np.pi, k)
-        self.velocity[which] = 0.0
-        self.push[which] = 0.0
-        self.turn[which] = 0.0
+        self._stand(which)
         objects = np.full((k, len(SIZES), 2), FAR)
         objects[:, SWITCH] = spots[:, 1]
         objects[:, STONES] = spots[:, 3:]
@@ -113,12 +109,8 @@ class Pyramids(ArenaEnv):
         centre = (np.column_stack([areas % 3, areas // 3]) - 1) * SPAWN
         return centre + self.rng.uniform(-SPAWN_REACH, SPAWN_REACH, (len(areas), 2))
 
-    def _act(self, rows: np.ndarray, actions: Actions) -> None:
-        c = MOVES[np.clip(actions.discrete[:, 0], 0, 4)]
-        self.push[rows], self.turn[rows] = c[:, 0], c[:, 2] * TURN * DT
-
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
-        glide(self.pos, self.heading, self.velocity, self.push, self.turn, PUSH, DRAG)
+        self._glide()
         walls = np.broadcast_to(WALL_CENTRES, (self.n, *WALL_CENTRES.shape))
         centres = np.concatenate([self.objects[:, STONES], walls], axis=1)
         halves = np.concatenate([SIZES[STONES], WALL_HALVES])
