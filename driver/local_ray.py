@@ -29,6 +29,7 @@ import psutil
 import ray
 import ray._private.node
 import ray._private.services
+import ray._private.worker
 
 # Ray's own figures: the smallest object store it accepts, and its default share of memory.
 RAY_MIN_OBJECT_STORE = 75 * 1024**2
@@ -70,7 +71,14 @@ def _lean_node_class(node: type) -> type:
         def __init__(self, ray_params: Any, *args: Any, **kwargs: Any) -> None:
             ray_params.no_monitor = True
             ray_params.include_log_monitor = False
-            super().__init__(ray_params, *args, **kwargs)
+            try:
+                super().__init__(ray_params, *args, **kwargs)
+            except BaseException:
+                # A head that failed half-way (its raylet never registered): what it had
+                # started lives as long as this thread, beside the plain head that follows.
+                with contextlib.suppress(Exception):
+                    self.kill_all_processes(check_alive=False, wait=True)
+                raise
 
         def start_api_server(self, *, include_dashboard: Any, raise_on_failure: Any) -> None:
             self._webui_url = None  # what the node reports where no dashboard runs
@@ -145,7 +153,7 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
             ray.init(**options)
     except Exception as error:  # a Ray whose internals moved: start it the plain way
         log.warning("lean local Ray did not start (%s); starting Ray's full head", error)
-        if ray.is_initialized():
+        if ray._private.worker._global_node is not None:  # started, even if not connected
             ray.shutdown()
         ray.init(**options)
 

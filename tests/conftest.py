@@ -70,7 +70,8 @@ def wait_for_no_processes(include_ray: bool, seconds: float = 10.0) -> list[str]
     details = []
     for process in left:
         try:
-            details.append(f"{process.pid}: {' '.join(process.cmdline())[:200]}")
+            command = " ".join(process.cmdline())
+            details.append(f"{process.pid} (parent {process.ppid()}): {command[:300]}")
             process.kill()
         except Exception:
             continue
@@ -96,7 +97,8 @@ def ray_session():
     from driver.local_ray import init_local_ray
 
     init_local_ray(2)
+    session = ray._private.worker._global_node.session_name  # to tell its processes apart
     yield ray
     ray.shutdown()
     if left := wait_for_no_processes(include_ray=True, seconds=20.0):
-        pytest.fail(f"Ray left processes behind after shutdown: {left}")
+        pytest.fail(f"Ray left processes behind after shutdown (this fixture's {session}): {left}")

@@ -89,9 +89,45 @@ def test_a_ray_whose_internals_moved_still_starts_the_plain_way(monkeypatch):
             raise TypeError("Node.__init__() got an unexpected keyword argument")
 
     monkeypatch.setattr(ray, "init", init)
-    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray._private.worker, "_global_node", None)  # the lean try started none
     local_ray.init_local_ray(2)
     assert calls == [False, True]  # the lean try, then Ray as it comes
+
+
+# In a process of its own: the session's Ray is left alone. The first head's raylet start
+# fails after its GCS is up (as when a raylet never registers on a loaded machine).
+HALF_STARTED_HEAD = """
+import json, logging, psutil, ray, ray._private.node as node
+from driver import local_ray
+logging.disable(logging.WARNING)
+plain, first = node.Node.start_ray_processes, []
+def once(self):
+    if first:
+        return plain(self)
+    first.extend(i.process.pid for infos in self.all_processes.values() for i in infos)
+    raise RuntimeError("the raylet did not register")
+node.Node.start_ray_processes = once
+local_ray.init_local_ray(1)
+alive = [p for p in first if psutil.pid_exists(p) and psutil.Process(p).status() != "zombie"]
+up = ray.get(ray.remote(lambda: 1).remote())
+ray.shutdown()
+print(json.dumps({"first": first, "alive": alive, "up": up}))
+"""
+
+
+def test_a_head_that_fails_half_way_leaves_nothing_beside_the_one_that_follows():
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", HALF_STARTED_HEAD], capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout.splitlines()[-1])
+    assert result["first"]  # the failed head had started its GCS
+    assert result["alive"] == []
+    assert result["up"] == 1  # the plain head that followed runs tasks
 
 
 def test_asking_for_the_dashboard_starts_rays_full_head(monkeypatch):
