@@ -3,12 +3,13 @@ ML-Agents config under both trainers on the same unitysim build, every run to th
 step budget, side by side.
 
 Per seed, mlagents-learn runs while ours run one after the other beside it (not pinned to
-cores): this tree, and with ``--base-tree DIR`` also the code in DIR (a checkout of
-another commit). Each run is stopped at its first summary at or past ``--steps``. The
-report gives, per run and in the median over seeds: the mean reward of the summary
-nearest each of ``--marks``, the first summary at or above each of ``--levels``, and
-the mean number of steps an update trained on, per stretch between marks
-(mlagents-learn's counted as it runs, ``mlagents_update_log.py``; ours' from
+cores): this tree; with ``--base-tree DIR`` also the code in DIR (a checkout of another
+commit); with ``--also-config NAME`` this tree on a second config too (the config without
+its memory, say: the feature's effect in the same run). Each run is stopped at its first
+summary at or past ``--steps``. The report gives, per run and in the median over seeds:
+the mean reward of the summary nearest each of ``--marks``, the first summary at or
+above each of ``--levels``, and the mean number of steps an update trained on, per
+stretch between marks (mlagents-learn's counted as it runs, ``mlagents_update_log.py``; ours' from
 ``Policy/Samples``).
 
     .venv/bin/python benchmarks/bench_fixed_steps.py --config ppo_Pyramids.yaml \\
@@ -37,6 +38,7 @@ from trainer_runs import ANCHOR_DIR, Run, anchor_command, our_command, run_comma
 
 ROOT = Path(__file__).resolve().parent.parent
 HERE = Path(__file__).resolve().parent
+Side = tuple[str, Path, Path]  # run name, source tree, config
 
 
 def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> dict[str, Any]:
@@ -58,13 +60,14 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
 
 
 def our_run(
-    args: argparse.Namespace, seed: int, build: Path, work: Path, side: str, tree: Path
+    args: argparse.Namespace, seed: int, build: Path, work: Path, side: Side
 ) -> dict[str, Any]:
-    run_id = f"{side}-{seed}"
+    name, tree, config = side
+    run_id = f"{name}-{seed}"
     prefix = [sys.executable, "-m", "driver.cli", "train"]
-    config, results = args.config_path, work / "ours"
+    results = work / "ours"
     command = our_command(prefix, config, build, run_id, results, seed, args.cap)
-    run = Run(side, seed)
+    run = Run(name, seed)
     run_command(
         command, {"PYTHONPATH": str(tree)}, run, signal.SIGINT, work / f"{run_id}.log", None,
         args.cap + 60, stop_step=args.steps, cwd=tree,
@@ -146,6 +149,7 @@ def main() -> int:
         "--demo-steps", type=int, default=0, help="steps of unitysim's expert for demo_path"
     )
     parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run too")
+    parser.add_argument("--also-config", help="a second config in mlagents_configs/, ours only")
     parser.add_argument("--anchor", type=Path, default=ANCHOR_DIR)
     parser.add_argument("--cap", type=float, default=1800.0, help="seconds: a safety stop")
     parser.add_argument("--work", type=Path, help="keep builds, logs and runs here")
@@ -155,7 +159,12 @@ def main() -> int:
     work.mkdir(parents=True, exist_ok=True)
     build = build_player(args.env, work)
     args.config_path = with_demo(args.config, args.env, args.demo_steps, work)
-    sides = [("ours", ROOT)] + ([("base", args.base_tree.resolve())] if args.base_tree else [])
+    sides: list[Side] = [("ours", ROOT, args.config_path)]
+    if args.base_tree:
+        sides.append(("base", args.base_tree.resolve(), args.config_path))
+    if args.also_config:
+        also = with_demo(args.also_config, args.env, args.demo_steps, work)
+        sides.append((f"ours-{Path(args.also_config).stem}", ROOT, also))
     runs: list[dict[str, Any]] = []
     for seed in args.seeds:
         anchor: list[dict[str, Any]] = []
@@ -163,8 +172,8 @@ def main() -> int:
             target=lambda s=seed, out=anchor: out.append(anchor_run(args, s, build, work))
         )
         thread.start()
-        for side, tree in sides:
-            runs.append(our_run(args, seed, build, work, side, tree))
+        for side in sides:
+            runs.append(our_run(args, seed, build, work, side))
             print(json.dumps(runs[-1]), flush=True)
         thread.join()
         runs += anchor
