@@ -148,8 +148,7 @@ class RolloutService(WorkerSupervision):
         live = self.live()
         if self.membership is not None:  # a joiner may wait for room that never comes
             live = [i for i in live if i in self.membership.delivered]
-        closing = [self.workers[i].close.remote() for i in live]
-        ray.wait(closing, num_returns=len(closing), timeout=60)
+        closed = self._close(live)
         self._drain_submits(block=False, timeout=10.0, lost=SHUTDOWN)
         finished, _ = ray.wait(list(self._collects), num_returns=len(self._collects), timeout=0)
         for ref in finished:  # read, so that Ray does not report their errors as unhandled
@@ -158,13 +157,12 @@ class RolloutService(WorkerSupervision):
                 index = self._collects[ref][0]
                 self.ledger.arrived(index, collected)
                 self.ledger.book(index, collected.incarnation, steps_of(collected), SHUTDOWN)
-        for index, call in zip(live, closing, strict=True):
-            try:
-                self.ledger.ended(index, SHUTDOWN, ray.get(call, timeout=0))
-            except Exception as error:  # dead: its launch guard already took the player
-                log.warning("while closing worker %d: %s", index, last_line(error))
-                dead = isinstance(error, RayActorError)
-                self.ledger.ended(index, WORKER_DEATH if dead else SHUTDOWN)
+        for index in live:
+            if not isinstance(last := closed[index], Exception):
+                self.ledger.ended(index, SHUTDOWN, last)
+                continue
+            log.warning("while closing worker %d: %s", index, last_line(last))
+            self.ledger.ended(index, WORKER_DEATH if isinstance(last, RayActorError) else SHUTDOWN)
         self.metrics.dropped_by_reason = self.ledger.dropped_by_reason()
         for worker in self.workers:
             ray.kill(worker, no_restart=True)

@@ -5,7 +5,8 @@
   dying ends the run; with ``--workers auto`` (elastic) it is retired, having left with its
   node or alone, and the cluster's room decides its successor (``rollout/membership.py``);
 - the learner died under the collect (its weights were the collect's argument);
-- a cause that no restart cures (Unity's restart budget spent): the run ends, naming it.
+- a cause that no restart cures (Unity's restart budget spent): the run ends, naming it;
+- a worker Ray is restarting when the run stops: closed once it is back.
 
 A mixin of ``RolloutService``: the state it reads and writes is the service's.
 """
@@ -31,7 +32,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("rollout.service")
 
-RETRY_PAUSE_S = 0.5  # between collects sent to a worker that Ray is restarting
+RETRY_PAUSE_S = 0.5  # between calls sent to a worker that Ray is restarting
+CLOSE_WAIT_S = 60.0  # for all workers' closes at the end of a run
 
 
 class WorkerSupervision:
@@ -155,3 +157,30 @@ class WorkerSupervision:
             ) from None
         log.warning("worker %d died (%s); Ray restarts it", index, error)
         self._worker_version[index] = 0  # a restarted worker needs the weights again
+
+    def _close(self, indices: list[int]) -> dict[int, Any]:
+        """Each worker's close: its last ``Collected``, or the error it raised. One that Ray
+        is restarting is asked again until it is back: killed in the middle of its start,
+        its new process once outlived the kill and Ray itself, holding its port."""
+        deadline = time.monotonic() + CLOSE_WAIT_S
+        calls = {self.workers[i].close.remote(): i for i in indices}
+        closed: dict[int, Any] = {}
+        while calls:
+            left = deadline - time.monotonic()
+            ready, _ = ray.wait(list(calls), num_returns=1, timeout=max(left, 0.0))
+            if not ready:
+                break
+            index = calls.pop(ready[0])
+            try:
+                closed[index] = ray.get(ready[0])
+            except ActorUnavailableError as error:
+                if left < RETRY_PAUSE_S:
+                    closed[index] = error
+                    continue
+                time.sleep(RETRY_PAUSE_S)
+                calls[self.workers[index].close.remote()] = index
+            except Exception as error:  # dead: its launch guard already took the player
+                closed[index] = error
+        for index in calls.values():
+            closed[index] = TimeoutError(f"no answer within {CLOSE_WAIT_S:.0f} s")
+        return closed

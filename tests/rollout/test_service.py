@@ -6,9 +6,11 @@ import math
 import os
 import signal
 import time
+from pathlib import Path
 
 import psutil
 import pytest
+import ray
 from ray.exceptions import ActorUnavailableError, RayTaskError
 
 from driver.counting_learner import CountingLearner
@@ -278,3 +280,47 @@ def test_a_build_that_exits_at_once_ends_the_run_at_once(ray_session, registry, 
     finally:
         service.stop()
         ray_session.kill(learner)
+
+
+class SlowToRestart(RolloutWorker.__ray_actor_class__):  # type: ignore[name-defined,misc]
+    """A worker whose restart takes 3 s longer (as on a loaded machine); each close leaves
+    a file beside the port registry, named by the process that closed."""
+
+    def __init__(self, index: int, unity: UnityConfig, *rest: object) -> None:
+        if ray.get_runtime_context().was_current_actor_reconstructed:
+            time.sleep(3.0)
+        self.closes = Path(str(rest[-1])).parent / "closes"
+        super().__init__(index, unity, *rest)
+
+    def close(self):
+        closed = super().close()
+        self.closes.mkdir(exist_ok=True)
+        (self.closes / str(os.getpid())).touch()
+        return closed
+
+
+def test_a_worker_ray_is_restarting_when_the_run_stops_is_closed_once_back(ray_session, registry):
+    """Killed mid-start, a restarted worker's new process once outlived the kill and Ray's
+    shutdown, holding its port (a fresh-clone suite). Stop waits for it and closes it."""
+    learner = ray_session.remote(CountingLearner).remote()
+    config = service_config(
+        UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
+        registry,
+        workers=1,
+        max_worker_restarts=1,
+    )
+    worker_class = ray_session.remote(num_cpus=1)(SlowToRestart)
+    service = RolloutService(config, actor_factory, learner, worker_class=worker_class)
+    try:
+        service.start()
+        service.run(agent_steps=300)
+        victim = ray_session.get(service.workers[0].identity.remote())
+        os.kill(victim["pid"], signal.SIGKILL)
+        service.run(until=lambda m: m.worker_restarts >= 1, seconds=30)
+        assert service.metrics.worker_restarts == 1
+    finally:
+        service.stop()
+        ray_session.kill(learner)
+    closes = [int(p.name) for p in (Path(registry).parent / "closes").iterdir()]
+    assert len(closes) == 1 and closes[0] != victim["pid"], "the new process was closed"
+    assert wait_gone(closes[0], 10.0)
