@@ -15,6 +15,7 @@ stretch between marks (mlagents-learn's counted as it runs, ``mlagents_update_lo
     .venv/bin/python benchmarks/bench_fixed_steps.py --config ppo_Pyramids.yaml \\
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
 
+``--measure group`` reads POCA's mean group reward (DungeonEscape), ``elo`` self-play's ELO.
 An imitation config (``imitation_Pyramids.yaml``) takes ``--demo-steps 5000``: both
 trainers then read one recording of unitysim's scripted expert as its ``demo_path``.
 """
@@ -34,7 +35,7 @@ from typing import Any
 from bench_learning import scalars  # benchmarks/bench_learning.py
 from bench_vs_mlagents import build_player, with_demo
 from machine import machine  # benchmarks/machine.py
-from trainer_runs import ANCHOR_DIR, Run, anchor_command, our_command, run_command
+from trainer_runs import ANCHOR_DIR, MEASURES, Run, anchor_command, our_command, run_command
 
 ROOT = Path(__file__).resolve().parent.parent
 HERE = Path(__file__).resolve().parent
@@ -53,7 +54,7 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
     run = Run("mlagents-learn", seed)
     run_command(
         command, env, run, signal.SIGTERM, work / f"ml-{seed}.log", None, args.cap,
-        stop_step=args.steps,
+        args.measure, stop_step=args.steps,
     )  # fmt: skip
     lines = updates.read_text().splitlines() if updates.is_file() else []  # none: it failed
     return report(run, [tuple(json.loads(line)) for line in lines], args)
@@ -70,7 +71,7 @@ def our_run(
     run = Run(name, seed)
     run_command(
         command, {"PYTHONPATH": str(tree)}, run, signal.SIGINT, work / f"{run_id}.log", None,
-        args.cap + 60, stop_step=args.steps, cwd=tree,
+        args.cap + 60, args.measure, stop_step=args.steps, cwd=tree,
     )  # fmt: skip
     samples = scalars(work / "ours" / run_id, "Policy/Samples")
     return report(run, update_sizes(samples), args)
@@ -145,6 +146,9 @@ def main() -> int:
     parser.add_argument("--marks", type=int, nargs="*", default=[150_000, 300_000, 450_000])
     parser.add_argument("--spacing", type=int, default=30_000, help="the config's summary_freq")
     parser.add_argument("--levels", type=float, nargs="*", default=[0.5, 1.0])
+    parser.add_argument(
+        "--measure", choices=["reward", *MEASURES], default="reward", help="what a summary reads"
+    )
     parser.add_argument(
         "--demo-steps", type=int, default=0, help="steps of unitysim's expert for demo_path"
     )
