@@ -174,7 +174,7 @@ class WorkerSupervision:
             try:
                 closed[index] = ray.get(ready[0])
             except ActorUnavailableError as error:
-                if left < RETRY_PAUSE_S:
+                if deadline - time.monotonic() < RETRY_PAUSE_S:
                     closed[index] = error
                     continue
                 time.sleep(RETRY_PAUSE_S)

@@ -21,6 +21,7 @@ from rollout.service import (
     LearnerDied,
     RolloutError,
     RolloutService,
+    ServiceConfig,
 )
 from rollout.unity import UnityConfig
 from rollout.worker import RolloutWorker, WeightsLost
@@ -133,17 +134,22 @@ def test_synthetic_workers_replay_real_collects_with_no_unity_left(ray_session, 
     assert max(summary["versions_seen"]) >= summary["version"] - 2 > 10  # stamped as sent
 
 
-def test_a_killed_worker_is_one_failure_however_long_ray_takes_to_restart_it(ray_session, registry):
-    """While Ray restarts a worker (seconds: a new process imports torch), collects sent to
-    it fail at once as "unavailable"; those retries must not count as more deaths, or a
-    budget of one restart would end the run."""
-    learner = ray_session.remote(CountingLearner).remote()
-    config = service_config(
+def one_restartable_worker(registry: str) -> ServiceConfig:
+    """One worker on 3DBall that Ray may restart once; its player ends with it."""
+    return service_config(
         UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
         registry,
         workers=1,
         max_worker_restarts=1,
     )
+
+
+def test_a_killed_worker_is_one_failure_however_long_ray_takes_to_restart_it(ray_session, registry):
+    """While Ray restarts a worker (seconds: a new process imports torch), collects sent to
+    it fail at once as "unavailable"; those retries must not count as more deaths, or a
+    budget of one restart would end the run."""
+    learner = ray_session.remote(CountingLearner).remote()
+    config = one_restartable_worker(registry)
     with RolloutService(config, actor_factory, learner) as service:
         service.run(agent_steps=500)
         victim = ray_session.get(service.workers[0].identity.remote())
@@ -303,12 +309,7 @@ def test_a_worker_ray_is_restarting_when_the_run_stops_is_closed_once_back(ray_s
     """Killed mid-start, a restarted worker's new process once outlived the kill and Ray's
     shutdown, holding its port (a fresh-clone suite). Stop waits for it and closes it."""
     learner = ray_session.remote(CountingLearner).remote()
-    config = service_config(
-        UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",)),
-        registry,
-        workers=1,
-        max_worker_restarts=1,
-    )
+    config = one_restartable_worker(registry)
     worker_class = ray_session.remote(num_cpus=1)(SlowToRestart)
     service = RolloutService(config, actor_factory, learner, worker_class=worker_class)
     try:
