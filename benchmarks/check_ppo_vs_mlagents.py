@@ -22,7 +22,7 @@ import os
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -196,9 +196,16 @@ def load_ours(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> None:
 
     for name, (module, theirs) in names.items():
         state = modules[module].state_dict()
-        for part in ("weight", "bias"):
+        for part in parts(d, name):
             state[f"{theirs}.{part}"] = torch.from_numpy(d[f"initial/{name}.{part}"])
         modules[module].load_state_dict(state)
+
+
+def parts(d: Mapping[str, np.ndarray], name: str) -> list[str]:
+    """The parameters of our module ``name`` in the case (a layer's ``weight`` and
+    ``bias``, an LSTM's ``weight_ih_l0`` ...)."""
+    prefix = f"initial/{name}."
+    return [key.removeprefix(prefix) for key in d if key.startswith(prefix)]
 
 
 def worst_difference(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> float:
@@ -208,13 +215,13 @@ def worst_difference(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> flo
     moves by Adam's step on rounding noise) is compared with that most."""
     rows = []
     for name, (module, theirs) in names.items():
-        for part in ("weight", "bias"):
+        for part in parts(d, name):
             mine = d[f"after/{name}.{part}"]
             diff = float(
                 np.abs(modules[module].state_dict()[f"{theirs}.{part}"].numpy() - mine).max()
             )
             moved = float(np.abs(mine - d[f"initial/{name}.{part}"]).max())
-            print(f"  {name}.{part:<6} max |ML - ours| {diff:.1e}, moved by the update {moved:.1e}")
+            print(f"  {name}.{part:<12} max |ML - ours| {diff:.1e}, moved by {moved:.1e}")
             rows.append((diff, moved))
     most = max(moved for _, moved in rows)
     return max(diff / (moved if moved >= 1e-3 * most else most) for diff, moved in rows)
@@ -302,22 +309,24 @@ def mlagents(case: Path, anchor: Path) -> float:
     )
 
 
-def train_in_order(update: Any, optimizer: Any, h: Any) -> dict[str, float]:
+def train_in_order(update: Any, optimizer: Any, h: Any, length: int = 1) -> dict[str, float]:
     """ML-Agents' ``_update_policy`` on its update buffer: the whole-buffer advantage
-    normalization, then ``num_epoch`` passes of its optimizer's ``update`` over the
-    minibatches, in order (its trainer shuffles here; ours is told not to either), each
-    also training the reward signals' networks; the means of what they report, as its
-    trainer averages them for TensorBoard."""
+    normalization (padding's zeros included, with memory), then ``num_epoch`` passes of
+    its optimizer's ``update`` over the minibatches of ``batch_size // length`` sequences
+    of ``length`` (the sequence length; 1 without memory), in order (its trainer shuffles
+    here; ours is told not to either), each also training the reward signals' networks;
+    the means of what they report, as its trainer averages them for TensorBoard."""
     from mlagents.trainers.buffer import BufferKey
 
     advantages = np.array(update[BufferKey.ADVANTAGES].get_batch(), dtype=np.float32)
     normalized = (advantages - advantages.mean()) / (advantages.std() + 1e-10)
     update[BufferKey.ADVANTAGES].set(normalized)
     n, figures = update.num_experiences, {}
+    size = max(h.batch_size - h.batch_size % length, length)  # whole sequences
     for _ in range(h.num_epoch):
-        for start in range(0, (n // h.batch_size) * h.batch_size, h.batch_size):
-            minibatch = update.make_mini_batch(start, start + h.batch_size)
-            stats = optimizer.update(minibatch, h.batch_size)
+        for start in range(0, (n // size) * size, size):
+            minibatch = update.make_mini_batch(start, start + size)
+            stats = optimizer.update(minibatch, max(h.batch_size // length, 1))
             stats.update(optimizer.update_reward_signals(minibatch))  # curiosity's ...
             for tag, value in stats.items():
                 figures.setdefault(tag, []).append(float(value))

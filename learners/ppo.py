@@ -192,10 +192,14 @@ class PPO:
 
     def ready(self) -> bool:
         """More than ``buffer_size`` steps, as ML-Agents' trainers wait for."""
-        return self.store.train_steps > self.settings.hyperparameters.buffer_size
+        return self.buffered() > self.settings.hyperparameters.buffer_size
 
     def wanted(self) -> int | None:
-        return on_policy_wanted(self.settings.hyperparameters.buffer_size, self.store.train_steps)
+        return on_policy_wanted(self.settings.hyperparameters.buffer_size, self.buffered())
+
+    def buffered(self) -> int:
+        """The steps that count towards ``buffer_size``."""
+        return self.store.train_steps
 
     # --- the update ---------------------------------------------------------------------
 
@@ -206,9 +210,7 @@ class PPO:
         self.network.update_normalization(rows.obs, None if len(train) == len(rows) else train)
         with torch.no_grad():
             value, advantage, value_target = self.estimate(rows)
-        trained = advantage[train]
-        # numpy's std (no Bessel correction), as ML-Agents' _update_policy normalizes
-        advantage = (advantage - trained.mean()) / (trained.std(correction=0) + 1e-10)
+        advantage = self.normalized(advantage, train)
 
         lr, epsilon, beta = self.schedules(progress)
         self.step.start(self._bind(advantage, value_target), epsilon, beta)
@@ -227,6 +229,12 @@ class PPO:
             "Policy/Stale Steps Dropped": float(self.stale_steps),
             "Policy/Samples": float(len(train)),
         }
+
+    def normalized(self, advantage: torch.Tensor, train: torch.Tensor) -> torch.Tensor:
+        """The advantages normalized over the steps that train, with numpy's std (no
+        Bessel correction), as ML-Agents' ``_update_policy`` does over its buffer."""
+        trained = advantage[train]
+        return (advantage - trained.mean()) / (trained.std(correction=0) + 1e-10)
 
     def train_beside(self, train: torch.Tensor) -> dict[str, float]:
         """PPO's epochs, and the reward signals' networks trained beside them: on a CPU

@@ -26,8 +26,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
+from tensordict import TensorDict
 from torch.nn.utils.rnn import pack_padded_sequence, pad_packed_sequence
 
+from batches import keys
 from learners.minibatch import MinibatchStep
 from learners.policies import lstm_state
 from learners.ppo import PPO, VALUE_CHUNK_BYTES, Steps, policy_terms
@@ -90,6 +92,24 @@ class RecurrentPPO(PPO):
         self._sequences: Sequences | None = None
         self._memories: tuple[torch.Tensor, torch.Tensor] | None = None  # actor, critic [S, M]
         self._train: torch.Tensor | None = None
+        self.padding = 0  # the stored pieces' padding to whole sequences
+
+    def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
+        """As ``PPO.add``; also counts the padding the segment's pieces will get."""
+        steps = super().add(segment, lag)
+        ends = segment[keys.NEXT, keys.DONE].reshape(-1).nonzero().squeeze(-1)
+        lengths = torch.diff(ends, prepend=ends.new_full((1,), -1))
+        self.padding += int((-lengths % self.length).sum())
+        return steps
+
+    def buffered(self) -> int:
+        """Steps and padding: ML-Agents' update buffer holds the sequences padded, and its
+        trainer counts the padding towards ``buffer_size`` too."""
+        return self.store.train_steps + self.padding
+
+    def update(self, progress: float) -> dict[str, float]:
+        self.padding = 0  # the store is taken whole
+        return super().update(progress)
 
     # --- values along each agent's pieces ----------------------------------------------------
 
@@ -198,6 +218,16 @@ class RecurrentPPO(PPO):
         return net.value_head(out, self.signals.heads).reshape(len(memory), -1)
 
     # --- the update --------------------------------------------------------------------------
+
+    def normalized(self, advantage: torch.Tensor, train: torch.Tensor) -> torch.Tensor:
+        """As ML-Agents' ``_update_policy``: over its update buffer, where each sequence's
+        padding holds advantage 0, so the padding counts in the mean and the std."""
+        assert self._sequences is not None
+        trained = advantage[train]
+        count = len(trained) + int((~self._sequences.valid).sum())
+        mean = trained.sum() / count
+        std = (trained.square().sum() / count - mean.square()).clamp(min=0.0).sqrt()
+        return (advantage - mean) / (std + 1e-10)
 
     def epochs(self, train: torch.Tensor) -> None:
         """``num_epoch`` passes over the sequences with a step to train, shuffled, in

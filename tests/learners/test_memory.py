@@ -164,6 +164,38 @@ def test_the_critic_runs_along_an_agents_pieces_across_updates():
     assert not torch.allclose(other, expected[4:8])
 
 
+def test_padding_counts_as_mlagents_update_buffer_counts_it():
+    """Pieces of 5 and 1 steps in sequences of 4 take 8 + 4 places in ML-Agents' update
+    buffer, which its trainer counts against ``buffer_size``: ready after 6 steps, where
+    PPO without memory waits for more than 8. The next buffer counts from nothing."""
+    spec = vector_spec(4, 0, (2,))
+    network = memory_network(spec, length=4)
+    obs, memories = trajectory(network, 6)
+    learner = ppo(network, buffer_size=8)
+    learner.add(pieces(spec, obs, memories, 0, 5), torch.zeros(5, dtype=torch.int64))
+    assert (learner.buffered(), learner.ready(), learner.wanted()) == (8, False, 1)
+    learner.add(pieces(spec, obs, memories, 5, 6), torch.zeros(1, dtype=torch.int64))
+    assert (learner.buffered(), learner.ready()) == (12, True)
+    learner.update(0.0)
+    assert (learner.buffered(), learner.wanted()) == (0, 9)
+
+
+def test_advantages_are_normalized_over_the_padded_sequences_as_in_mlagents():
+    """ML-Agents' ``_update_policy`` normalizes its update buffer's advantages, the
+    padding's zeros among them: pieces of 5 and 3 steps in sequences of 4 add 3 + 1
+    zeros to the mean and the std."""
+    network = memory_network(vector_spec(4, 0, (2,)), length=4)
+    learner = ppo(network)
+    done = torch.tensor([0, 0, 0, 0, 1, 0, 0, 1], dtype=torch.bool)
+    learner._sequences = sequences(done, 4)
+    advantage = torch.linspace(-1.0, 2.0, 8)
+    padded = np.concatenate([advantage.numpy(), np.zeros(4, np.float32)])
+    expected = (advantage.numpy() - padded.mean()) / (padded.std() + 1e-10)
+    got = learner.normalized(advantage, torch.arange(8))
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-5)
+    assert abs(float(got.mean())) > 0.1  # the real steps' mean is not 0
+
+
 # ---- learning: recall a cue shown only at an episode's first step ---------------------
 
 
