@@ -9,8 +9,8 @@ its memory, say: the feature's effect in the same run). Each run is stopped at i
 summary at or past ``--steps``. The report gives, per run and in the median over seeds:
 the mean reward of the summary nearest each of ``--marks``, the first summary at or
 above each of ``--levels``, and the mean number of steps an update trained on, per
-stretch between marks (mlagents-learn's counted as it runs, ``mlagents_update_log.py``; ours' from
-``Policy/Samples``).
+stretch between marks (mlagents-learn's from the steps at which each update began, as
+``mlagents_update_log.py`` writes them down; ours' from ``Policy/Samples``).
 
     .venv/bin/python benchmarks/bench_fixed_steps.py --config ppo_Pyramids.yaml \\
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
@@ -57,7 +57,14 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
         args.measure, stop_step=args.steps,
     )  # fmt: skip
     lines = updates.read_text().splitlines() if updates.is_file() else []  # none: it failed
-    return report(run, [tuple(json.loads(line)) for line in lines], args)
+    return report(run, steps_between([json.loads(line)[0] for line in lines]), args)
+
+
+def steps_between(at: list[int]) -> list[tuple[int, int]]:
+    """(step, size) per update of mlagents-learn, from the steps at which each began: the
+    agent steps it trained on. Its buffer's own count would add a recurrent policy's
+    padding to whole sequences, which trains nothing."""
+    return [(step, step - before) for before, step in zip([0, *at], at, strict=False)]
 
 
 def our_run(
