@@ -93,19 +93,30 @@ class RecurrentPPO(PPO):
         self._memories: tuple[torch.Tensor, torch.Tensor] | None = None  # actor, critic [S, M]
         self._train: torch.Tensor | None = None
         self.padding = 0  # the stored pieces' padding to whole sequences
+        self.seen = [0, 0]  # steps and padding of every piece so far
 
     def add(self, segment: TensorDict, lag: torch.Tensor) -> int:
         """As ``PPO.add``; also counts the padding the segment's pieces will get."""
         steps = super().add(segment, lag)
         ends = segment[keys.NEXT, keys.DONE].reshape(-1).nonzero().squeeze(-1)
         lengths = torch.diff(ends, prepend=ends.new_full((1,), -1))
-        self.padding += int((-lengths % self.length).sum())
+        padding = int((-lengths % self.length).sum())
+        self.padding += padding
+        self.seen = [self.seen[0] + len(segment), self.seen[1] + padding]
         return steps
 
     def buffered(self) -> int:
         """Steps and padding: ML-Agents' update buffer holds the sequences padded, and its
         trainer counts the padding towards ``buffer_size`` too."""
         return self.store.train_steps + self.padding
+
+    def wanted(self) -> int | None:
+        """The agent steps still missing: the buffer's places, less the share that
+        padding has taken of the pieces so far (workers count steps)."""
+        missing = super().wanted()
+        assert missing is not None
+        steps, padding = self.seen
+        return max(1, math.ceil(missing * steps / (steps + padding))) if steps else missing
 
     def update(self, progress: float) -> dict[str, float]:
         self.padding = 0  # the store is taken whole

@@ -173,11 +173,12 @@ def test_padding_counts_as_mlagents_update_buffer_counts_it():
     obs, memories = trajectory(network, 6)
     learner = ppo(network, buffer_size=8)
     learner.add(pieces(spec, obs, memories, 0, 5), torch.zeros(5, dtype=torch.int64))
-    assert (learner.buffered(), learner.ready(), learner.wanted()) == (8, False, 1)
+    assert (learner.buffered(), learner.ready(), learner.wanted()) == (8, False, 1)  # 1 place
     learner.add(pieces(spec, obs, memories, 5, 6), torch.zeros(1, dtype=torch.int64))
     assert (learner.buffered(), learner.ready()) == (12, True)
     learner.update(0.0)
-    assert (learner.buffered(), learner.wanted()) == (0, 9)
+    # workers count steps: 9 places are 5 steps where 6 steps took 12 places so far
+    assert (learner.buffered(), learner.wanted()) == (0, 5)
 
 
 def test_advantages_are_normalized_over_the_padded_sequences_as_in_mlagents():
