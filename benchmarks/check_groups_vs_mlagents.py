@@ -23,10 +23,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from check_ppo_vs_mlagents import anchor_workarounds, main, vector_spec
-from check_trajectories_vs_mlagents import unity_steps
+from check_ppo_vs_mlagents import anchor_workarounds, main
+from check_trajectories_vs_mlagents import (
+    BRANCH,
+    agreement,
+    mlagents_trajectories,
+    our_segments,
+    unity_steps,
+)
 
-GROUPS, SIZE, EXCHANGES, HORIZON, BRANCH = 2, 3, 300, 6, 3
+GROUPS, SIZE, EXCHANGES, HORIZON = 2, 3, 300, 6
 Mates = tuple[tuple[int, float, int, bool], ...]  # (observation number, reward, action, done)
 # a trajectory: per step (observation number, action, reward, group reward, groupmates),
 # whether it ends its episode (terminated), the next observation's number, the groupmates'
@@ -131,23 +137,10 @@ def grouped_steps(exchange: dict[str, np.ndarray]) -> tuple[Any, Any]:
 
 def ours(seed: int, out: Path) -> None:
     from batches import keys
-    from rollout.decisions import Decisions
-    from rollout.segments import SegmentBuilder
 
     exchanges = stream(seed)
-    builder = SegmentBuilder("B?team=0", vector_spec(2, BRANCH), HORIZON)
-    segments = []
-    for exchange in exchanges:
-        decisions, terminals = grouped_steps(exchange)
-        builder.observe(decisions, terminals)
-        if (segment := builder.collect()) is not None:
-            segments.append(segment.data)
-        chosen = Decisions(
-            np.zeros((len(decisions), 0), np.float32), exchange["action"], exchange["log_prob"]
-        )
-        builder.act(decisions, chosen, 0)
     rows: list[Trajectory] = []
-    for data in segments:
+    for data in our_segments(exchanges, grouped_steps, HORIZON):
         mates, after = data[keys.GROUPMATES], data[keys.NEXT][keys.GROUPMATES]
         ends = np.flatnonzero(data[keys.NEXT][keys.DONE][:, 0]) + 1
         for start, stop in zip([0, *ends[:-1]], ends, strict=True):
@@ -189,37 +182,9 @@ def mlagents(case: Path, anchor: Path) -> float:
     """ML-Agents' agent processor on the case's stream; returns 0 when its trajectories
     are ours, else the share of trajectories that differ."""
     anchor_workarounds(anchor)
-    from mlagents.trainers.action_info import ActionInfo
-    from mlagents.trainers.agent_processor import AgentManagerQueue, AgentProcessor
-    from mlagents.trainers.policy.torch_policy import TorchPolicy
-    from mlagents.trainers.settings import NetworkSettings
-    from mlagents.trainers.stats import StatsReporter
-    from mlagents.trainers.torch_entities.action_log_probs import LogProbsTuple
-    from mlagents.trainers.torch_entities.networks import SimpleActor
-    from mlagents_envs.base_env import ActionTuple
-
     case_data = pickle.loads(case.read_bytes())
-    actor = {"conditional_sigma": False, "tanh_squash": False}
-    policy = TorchPolicy(0, vector_spec(2, BRANCH), NetworkSettings(), SimpleActor, actor)
-    processor = AgentProcessor(policy, "B?team=0", StatsReporter("check"), HORIZON)
-    queue: AgentManagerQueue = AgentManagerQueue("B?team=0")
-    processor.publish_trajectory_queue(queue)
-    previous = ActionInfo.empty()
-    for exchange in case_data["exchanges"]:  # as its environment manager's step loop
-        decisions, terminals = grouped_steps(exchange)
-        processor.add_experiences(decisions, terminals, 0, previous)
-        action = ActionTuple(discrete=exchange["action"])
-        outputs = {
-            "action": action,
-            "log_probs": LogProbsTuple(
-                continuous=np.zeros((len(decisions), 0), np.float32),
-                discrete=exchange["log_prob"],
-            ),
-        }
-        previous = ActionInfo(action, action, outputs, list(decisions.agent_id))
     theirs: list[Trajectory] = []
-    while not queue.empty():
-        trajectory = queue.get_nowait()
+    for trajectory in mlagents_trajectories(case_data["exchanges"], grouped_steps, HORIZON):
         steps = tuple(
             (
                 int(s.obs[0][1]),
@@ -244,14 +209,7 @@ def mlagents(case: Path, anchor: Path) -> float:
                 tuple(sorted(int(o[0][1]) for o in trajectory.next_group_obs)),
             )
         )
-    mine = sorted(case_data["rows"])
-    theirs.sort()
-    count = sum(len(t[0]) for t in theirs)
-    print(f"  ML-Agents: {len(theirs)} trajectories, {count} steps; ours: {len(mine)} rows")
-    differ = [pair for pair in zip(theirs, mine, strict=False) if pair[0] != pair[1]]
-    for their, our in differ[:2]:
-        print(f"  differ:\n    ML   {their}\n    ours {our}")
-    return 0.0 if theirs == mine else max(len(differ), 1) / max(len(theirs), 1)
+    return agreement(theirs, case_data["rows"])
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ not) and the same observation after each trajectory's last step.
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -102,15 +103,21 @@ def unity_steps(exchange: dict[str, np.ndarray]) -> tuple[Any, Any]:
     return decisions, terminals
 
 
-def ours(seed: int, out: Path) -> None:
+Steps = Callable[[dict[str, np.ndarray]], tuple[Any, Any]]  # an exchange's Unity steps
+
+
+def our_segments(
+    exchanges: list[dict[str, np.ndarray]], unity: Steps, horizon: int
+) -> list[dict[str, Any]]:
+    """The segments our ``SegmentBuilder`` packs from the exchanges (``unity``: each one's
+    ``DecisionSteps`` and ``TerminalSteps``), acting as each exchange says."""
     from rollout.decisions import Decisions
     from rollout.segments import SegmentBuilder
 
-    exchanges = stream(seed)
-    builder = SegmentBuilder("B?team=0", vector_spec(2, BRANCH), HORIZON)
+    builder = SegmentBuilder("B?team=0", vector_spec(2, BRANCH), horizon)
     segments = []
     for exchange in exchanges:
-        decisions, terminals = unity_steps(exchange)
+        decisions, terminals = unity(exchange)
         builder.observe(decisions, terminals)
         if (segment := builder.collect()) is not None:
             segments.append(segment.data)
@@ -118,8 +125,13 @@ def ours(seed: int, out: Path) -> None:
             np.zeros((len(decisions), 0), np.float32), exchange["action"], exchange["log_prob"]
         )
         builder.act(decisions, chosen, 0)
+    return segments
+
+
+def ours(seed: int, out: Path) -> None:
+    exchanges = stream(seed)
     rows: list[Trajectory] = []
-    for data in segments:
+    for data in our_segments(exchanges, unity_steps, HORIZON):
         ends = np.flatnonzero(data["next"]["done"][:, 0]) + 1
         for start, stop in zip([0, *ends[:-1]], ends, strict=True):
             piece = slice(start, stop)
@@ -136,10 +148,11 @@ def ours(seed: int, out: Path) -> None:
     out.write_bytes(pickle.dumps({"exchanges": exchanges, "rows": rows}))
 
 
-def mlagents(case: Path, anchor: Path) -> float:
-    """ML-Agents' agent processor on the case's stream; returns 0 when its trajectories
-    are ours, else the share of trajectories that differ."""
-    anchor_workarounds(anchor)
+def mlagents_trajectories(
+    exchanges: list[dict[str, np.ndarray]], unity: Steps, horizon: int
+) -> list[Any]:
+    """The trajectories ML-Agents' own agent processor makes of the exchanges, acting as
+    each exchange says (its environment manager's step loop)."""
     from mlagents.trainers.action_info import ActionInfo
     from mlagents.trainers.agent_processor import AgentManagerQueue, AgentProcessor
     from mlagents.trainers.policy.torch_policy import TorchPolicy
@@ -149,15 +162,14 @@ def mlagents(case: Path, anchor: Path) -> float:
     from mlagents.trainers.torch_entities.networks import SimpleActor
     from mlagents_envs.base_env import ActionTuple
 
-    case_data = pickle.loads(case.read_bytes())
     actor = {"conditional_sigma": False, "tanh_squash": False}
     policy = TorchPolicy(0, vector_spec(2, BRANCH), NetworkSettings(), SimpleActor, actor)
-    processor = AgentProcessor(policy, "B?team=0", StatsReporter("check"), HORIZON)
+    processor = AgentProcessor(policy, "B?team=0", StatsReporter("check"), horizon)
     queue: AgentManagerQueue = AgentManagerQueue("B?team=0")
     processor.publish_trajectory_queue(queue)
     previous = ActionInfo.empty()
-    for exchange in case_data["exchanges"]:  # as its environment manager's step loop
-        decisions, terminals = unity_steps(exchange)
+    for exchange in exchanges:
+        decisions, terminals = unity(exchange)
         processor.add_experiences(decisions, terminals, 0, previous)
         action = ActionTuple(discrete=exchange["action"])
         outputs = {
@@ -168,9 +180,31 @@ def mlagents(case: Path, anchor: Path) -> float:
             ),
         }
         previous = ActionInfo(action, action, outputs, list(decisions.agent_id))
-    theirs: list[Trajectory] = []
+    out = []
     while not queue.empty():
-        trajectory = queue.get_nowait()
+        out.append(queue.get_nowait())
+    return out
+
+
+def agreement(theirs: list[Any], mine: list[Any]) -> float:
+    """0 when both sides' trajectories are the same (in any order), else the share that
+    differ; prints the first differences."""
+    mine, theirs = sorted(mine), sorted(theirs)
+    count = sum(len(t[0]) for t in theirs)
+    print(f"  ML-Agents: {len(theirs)} trajectories, {count} steps; ours: {len(mine)} rows")
+    differ = [pair for pair in zip(theirs, mine, strict=False) if pair[0] != pair[1]]
+    for their, our in differ[:3]:
+        print(f"  differ:\n    ML   {their}\n    ours {our}")
+    return 0.0 if theirs == mine else max(len(differ), 1) / max(len(theirs), 1)
+
+
+def mlagents(case: Path, anchor: Path) -> float:
+    """ML-Agents' agent processor on the case's stream; returns 0 when its trajectories
+    are ours, else the share of trajectories that differ."""
+    anchor_workarounds(anchor)
+    case_data = pickle.loads(case.read_bytes())
+    theirs: list[Trajectory] = []
+    for trajectory in mlagents_trajectories(case_data["exchanges"], unity_steps, HORIZON):
         steps = trajectory.steps
         last = steps[-1]
         theirs.append(
@@ -183,14 +217,7 @@ def mlagents(case: Path, anchor: Path) -> float:
                 int(trajectory.next_obs[0][1]),
             )
         )
-    mine = sorted(case_data["rows"])
-    theirs.sort()
-    steps = sum(len(t[0]) for t in theirs)
-    print(f"  ML-Agents: {len(theirs)} trajectories, {steps} steps; ours: {len(mine)} rows")
-    differ = [pair for pair in zip(theirs, mine, strict=False) if pair[0] != pair[1]]
-    for their, our in differ[:3]:
-        print(f"  differ:\n    ML   {their}\n    ours {our}")
-    return 0.0 if theirs == mine else max(len(differ), 1) / max(len(theirs), 1)
+    return agreement(theirs, case_data["rows"])
 
 
 if __name__ == "__main__":
