@@ -227,9 +227,12 @@ def worst_difference(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> flo
     return max(diff / (moved if moved >= 1e-3 * most else most) for diff, moved in rows)
 
 
-def mlagents_ppo(config: Path, behavior: str) -> tuple[Any, Any, Any]:
-    """ML-Agents' PPO policy, optimizer and settings for ``behavior`` of ``config``, on
-    ``vector_spec(OBS_SIZE, BRANCH)``, built as its PPO trainer builds them."""
+def mlagents_ppo(
+    config: Path | dict[str, Any], behavior: str, spec: Any = None
+) -> tuple[Any, Any, Any]:
+    """ML-Agents' PPO policy, optimizer and settings for ``behavior`` of ``config`` (a
+    file, or its data), on ``spec`` (``vector_spec(OBS_SIZE, BRANCH)`` unless given),
+    built as its PPO trainer builds them."""
     import yaml
     from mlagents.plugins.trainer_type import register_trainer_plugins
     from mlagents.trainers.policy.torch_policy import TorchPolicy
@@ -238,9 +241,10 @@ def mlagents_ppo(config: Path, behavior: str) -> tuple[Any, Any, Any]:
     from mlagents.trainers.torch_entities.networks import SimpleActor
 
     register_trainer_plugins()
-    settings = RunOptions.from_dict(yaml.safe_load(config.read_text())).behaviors[behavior]
+    text = config.read_text() if isinstance(config, Path) else yaml.safe_dump(config)
+    settings = RunOptions.from_dict(yaml.safe_load(text)).behaviors[behavior]
     actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
-    spec = vector_spec(OBS_SIZE, BRANCH)
+    spec = spec or vector_spec(OBS_SIZE, BRANCH)
     policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
     return policy, TorchPPOOptimizer(policy, settings), settings
 

@@ -26,12 +26,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import yaml
 from check_ppo_vs_mlagents import (
     REPORTED,
     anchor_workarounds,
     load_ours,
     main,
+    mlagents_ppo,
     reported,
     train_in_order,
     update_in_order,
@@ -175,24 +175,14 @@ def mlagents(case_file: Path, anchor: Path) -> float:
     """ML-Agents' PPO trainer steps and optimizer on the case's pieces; returns the worst
     difference from our weights, relative to how far the update moved them."""
     anchor_workarounds(anchor)
-    from mlagents.plugins.trainer_type import register_trainer_plugins
     from mlagents.trainers.buffer import AgentBuffer, BufferKey, RewardSignalUtil
-    from mlagents.trainers.policy.torch_policy import TorchPolicy
-    from mlagents.trainers.ppo.optimizer_torch import TorchPPOOptimizer
-    from mlagents.trainers.settings import RunOptions
     from mlagents.trainers.torch_entities.action_log_probs import LogProbsTuple
-    from mlagents.trainers.torch_entities.networks import SimpleActor
     from mlagents.trainers.trainer.trainer_utils import get_gae
     from mlagents.trainers.trajectory import AgentExperience, Trajectory
     from mlagents_envs.base_env import ActionTuple
 
-    register_trainer_plugins()
     d = np.load(case_file)
-    settings = RunOptions.from_dict(yaml.safe_load(yaml.safe_dump(CONFIG))).behaviors[BEHAVIOR]
-    spec = vector_spec(OBS_SIZE, BRANCH)
-    actor = {"conditional_sigma": False, "tanh_squash": False}  # as its PPO trainer
-    policy = TorchPolicy(0, spec, settings.network_settings, SimpleActor, actor)
-    optimizer = TorchPPOOptimizer(policy, settings)
+    policy, optimizer, settings = mlagents_ppo(CONFIG, BEHAVIOR, vector_spec(OBS_SIZE, BRANCH))
     modules = {"actor": policy.actor, "critic": optimizer.critic}
     load_ours(modules, ML_NAMES, d)
     extrinsic, h = optimizer.reward_signals["extrinsic"], settings.hyperparameters
