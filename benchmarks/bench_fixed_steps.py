@@ -15,7 +15,8 @@ stretch between marks (mlagents-learn's from the steps at which each update bega
     .venv/bin/python benchmarks/bench_fixed_steps.py --config ppo_Pyramids.yaml \\
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
 
-``--measure group`` reads POCA's mean group reward (DungeonEscape), ``elo`` self-play's ELO.
+``--measure group`` reads POCA's mean group reward (DungeonEscape), ``elo`` self-play's ELO
+(``--behavior Goalie``: one behavior's, where a game has two).
 An imitation config (``imitation_Pyramids.yaml``) takes ``--demo-steps 5000``: both
 trainers then read one recording of unitysim's scripted expert as its ``demo_path``.
 """
@@ -54,7 +55,7 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
     run = Run("mlagents-learn", seed)
     run_command(
         command, env, run, signal.SIGTERM, work / f"ml-{seed}.log", None, args.cap,
-        args.measure, stop_step=args.steps,
+        args.measure, args.behavior, stop_step=args.steps,
     )  # fmt: skip
     lines = updates.read_text().splitlines() if updates.is_file() else []  # none: it failed
     return report(run, steps_between([json.loads(line)[0] for line in lines]), args)
@@ -78,7 +79,7 @@ def our_run(
     run = Run(name, seed)
     run_command(
         command, {"PYTHONPATH": str(tree)}, run, signal.SIGINT, work / f"{run_id}.log", None,
-        args.cap + 60, args.measure, stop_step=args.steps, cwd=tree,
+        args.cap + 60, args.measure, args.behavior, stop_step=args.steps, cwd=tree,
     )  # fmt: skip
     samples = scalars(work / "ours" / run_id, "Policy/Samples")
     return report(run, update_sizes(samples), args)
@@ -102,10 +103,11 @@ def report(run: Run, sizes: list[tuple[int, int]], args: argparse.Namespace) -> 
     for mark in args.marks:
         if run.summaries and run.summaries[-1][1] >= mark - args.spacing:
             near[mark] = min(run.summaries, key=lambda s: abs(s[1] - mark))[2]
-    first = {}
+    first, seconds = {}, {}
     for level in args.levels:
         hit = run.reached(level)
         first[level] = None if hit is None else hit[1]
+        seconds[level] = None if hit is None else round(hit[0], 1)
     stretches, start = {}, 0
     for mark in [*args.marks, args.steps]:  # the last takes the summary past --steps too
         end = mark if mark != args.steps else float("inf")
@@ -120,8 +122,10 @@ def report(run: Run, sizes: list[tuple[int, int]], args: argparse.Namespace) -> 
         "seconds": round(run.wall_s, 1),
         "reward_at": near,
         "first_at_or_above": first,
+        "seconds_at_or_above": seconds,
         "update_size": stretches,
         "leftover_processes": run.leftovers,
+        "summaries": [(round(t, 1), step, value) for t, step, value in run.summaries],
     }
 
 
@@ -161,6 +165,7 @@ def main() -> int:
     )
     parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run too")
     parser.add_argument("--also-config", help="a second config in mlagents_configs/, ours only")
+    parser.add_argument("--behavior", help="read this behavior's summaries only (None: any)")
     parser.add_argument("--anchor", type=Path, default=ANCHOR_DIR)
     parser.add_argument("--cap", type=float, default=1800.0, help="seconds: a safety stop")
     parser.add_argument("--work", type=Path, help="keep builds, logs and runs here")

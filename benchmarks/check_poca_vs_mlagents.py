@@ -86,6 +86,7 @@ def case(seed: int) -> dict[str, np.ndarray]:
     present = rng.random((ROWS, HORIZON, MATES)) < 0.8
     present[:, :, 0] = True  # at least one groupmate at each step
     ends = np.arange(ROWS) % 3  # GROUP_ENDS, LEAVES, CUT in turn
+    present[np.isin(np.arange(ROWS) % 6, (0, 2))] = False  # alone in its group, as a Goalie
     mate_done = np.zeros((ROWS, HORIZON, MATES), bool)
     mate_done[ends == GROUP_ENDS, -1] = True  # the group ends together
     group_reward = np.zeros((ROWS, HORIZON), np.float32)

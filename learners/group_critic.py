@@ -110,7 +110,8 @@ class GroupCritic(nn.Module):
         for name, encoder in zip(self.sensor_names, self.encoders, strict=True):
             x = obs[name]
             shape = x.shape[:lead]
-            parts.append(encoder(x.reshape(-1, *x.shape[lead:])).reshape(*shape, -1))
+            encoded = encoder(x.reshape(-1, *x.shape[lead:]))
+            parts.append(encoded.reshape(*shape, encoded.shape[-1]))  # also for no groupmates
         return torch.cat(parts, dim=-1)
 
     def flat_action(
@@ -148,7 +149,7 @@ class GroupCritic(nn.Module):
         return self._head(torch.cat([own, others], 1), present)
 
     def _head(self, entities: torch.Tensor, mates_present: torch.Tensor) -> torch.Tensor:
-        own = torch.ones_like(mates_present[:, :1])
+        own = mates_present.new_ones(len(mates_present), 1)
         present = torch.cat([own, mates_present], 1)
         count = present.float().sum(1, keepdim=True)
         with torch.no_grad():

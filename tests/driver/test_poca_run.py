@@ -122,3 +122,41 @@ def test_the_poca_policy_exports_and_runs_in_onnxruntime(poca_run, tmp_path):
         named = {n: torch.from_numpy(o) for n, o in zip(network.sensor_names, obs, strict=True)}
         _, expected, _ = network.act(named, None, True)
     np.testing.assert_array_equal(actions, expected.numpy())
+
+
+STRIKERS = """\
+behaviors:
+  Goalie: &side
+    trainer_type: poca
+    hyperparameters: {batch_size: 128, buffer_size: 512, num_epoch: 1}
+    network_settings: {hidden_units: 16, num_layers: 1}
+    time_horizon: 32
+    summary_freq: 1000
+    self_play: {save_steps: 500, team_change: 1000, swap_steps: 500, window: 3}
+  Striker: *side
+"""
+
+
+def test_a_goalie_alone_in_its_group_trains_when_its_team_learns(ray_session, tmp_path):
+    """StrikersVsGoalie under ML-Agents' poca config shape: the Goalie has a group of its
+    own, no groupmates; it takes its turn after the Strikers' and trains on it."""
+    config = tmp_path / "strikers.yaml"
+    config.write_text(STRIKERS)
+    result = train(
+        TrainOptions(
+            env="unitysim:StrikersVsGoalie",
+            config=str(config),
+            results_dir=str(tmp_path),
+            run_id="strikers",
+            max_steps=5000,
+            max_seconds=150,  # a safety stop: the budget is the steps
+            workers=1,
+            progress=False,
+        )
+    )
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (goalie,) = [p for p in result.run_dir.iterdir() if p.name.startswith("Goalie")]
+    scalars = EventAccumulator(str(goalie)).Reload()
+    assert scalars.Scalars("Losses/Baseline Loss"), "the Goalie never trained"
+    assert scalars.Scalars("Self-play/ELO")

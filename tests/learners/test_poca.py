@@ -227,3 +227,20 @@ def test_the_group_reward_is_reported_for_the_agents_that_end_with_their_group()
 def test_groupmates_reach_the_learner_in_the_segments_it_is_sent():
     (batch, *_) = group_game(1)
     assert batch[keys.GROUPMATES, keys.PRESENT].shape[1] == 2
+
+
+def test_an_agent_alone_in_its_group_is_valued_as_one_whose_groupmates_are_all_absent():
+    """A Goalie is alone in its group: the critic takes no groupmates at all (M = 0) and
+    values it as it values an agent whose places are all empty."""
+    torch.manual_seed(0)
+    critic = GroupCritic(SPEC, NET)
+    obs = {"vector": torch.randn(5, 3)}
+    mates = {"vector": torch.randn(5, 2, 3)}
+    action = critic.flat_action(None, torch.randint(0, 2, (5, 2, 1)))
+    absent = torch.zeros(5, 2, dtype=torch.bool)
+    alone = {"vector": mates["vector"][:, :0]}
+    value = critic.value(obs, alone, absent[:, :0])
+    baseline = critic.baseline(obs, alone, action[:, :0], absent[:, :0])
+    assert value.shape == baseline.shape == (5,)
+    torch.testing.assert_close(value, critic.value(obs, mates, absent))
+    torch.testing.assert_close(baseline, critic.baseline(obs, mates, action, absent))
