@@ -58,7 +58,9 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
         args.measure, args.behavior, stop_step=args.steps,
     )  # fmt: skip
     lines = updates.read_text().splitlines() if updates.is_file() else []  # none: it failed
-    return report(run, steps_between([json.loads(line)[0] for line in lines]), args)
+    updates = [json.loads(line) for line in lines]  # [step, buffered, brain]
+    mine = [u[0] for u in updates if args.behavior in (None, *u[2:])]  # one brain's own
+    return report(run, steps_between(mine), args)
 
 
 def steps_between(at: list[int]) -> list[tuple[int, int]]:
@@ -81,7 +83,7 @@ def our_run(
         command, {"PYTHONPATH": str(tree)}, run, signal.SIGINT, work / f"{run_id}.log", None,
         args.cap + 60, args.measure, args.behavior, stop_step=args.steps, cwd=tree,
     )  # fmt: skip
-    samples = scalars(work / "ours" / run_id, "Policy/Samples")
+    samples = scalars(work / "ours" / run_id, "Policy/Samples", args.behavior)
     return report(run, update_sizes(samples), args)
 
 

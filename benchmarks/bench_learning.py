@@ -44,12 +44,14 @@ RUNS = (
 )
 
 
-def scalars(run_dir: Path, tag: str) -> list[tuple[float, int, float]]:
-    """(wall time, step, value) of ``tag`` across the run's behaviors."""
+def scalars(run_dir: Path, tag: str, behavior: str | None = None) -> list[tuple[float, int, float]]:
+    """(wall time, step, value) of ``tag`` across the run's behaviors (or ``behavior``'s)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     points: list[tuple[float, int, float]] = []
     for behavior_dir in sorted(p for p in run_dir.iterdir() if p.is_dir()):
+        if behavior is not None and behavior_dir.name.split("?")[0] != behavior:
+            continue
         if not list(behavior_dir.glob("events.out.tfevents.*")):
             continue
         accumulator = EventAccumulator(str(behavior_dir), size_guidance={"scalars": 0}).Reload()

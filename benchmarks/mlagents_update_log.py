@@ -3,7 +3,7 @@
     UPDATE_LOG=<file> <anchor>/venv/bin/python benchmarks/mlagents_update_log.py \\
         <anchor>/mlagents_learn_launcher.py <mlagents-learn arguments>
 
-Each line is ``[step, steps in the buffer]``, read as ``OnPolicyTrainer._update_policy``
+Each line is ``[step, steps in the buffer, brain]``, read as ``OnPolicyTrainer._update_policy``
 starts: what mlagents-learn 1.1.0 trains on in that update. Nothing in site-packages is
 edited: the method is wrapped at run time (``mlagents_hooks.py``).
 """
@@ -28,7 +28,8 @@ def wrap() -> None:
 
     def logged(self: Any) -> Any:
         with open(LOG, "a") as out:
-            out.write(json.dumps([int(self.get_step), self.update_buffer.num_experiences]) + "\n")
+            line = [int(self.get_step), self.update_buffer.num_experiences, self.brain_name]
+            out.write(json.dumps(line) + "\n")
         return update(self)
 
     trainer._update_policy = logged
