@@ -111,7 +111,7 @@ CASES = (
         (),
         900,
         "elo",
-        "Goalie",  # the side that learns first, in both trainers
+        "Striker",  # only goals end a game: the Striker's ELO climbs, the Goalie's falls
     ),
     # ML-Agents' imitation configs (GAIL, behavioral cloning), on a recording of
     # unitysim's expert made by our recorder, the same file for both trainers
