@@ -16,7 +16,7 @@ stretch between marks (mlagents-learn's from the steps at which each update bega
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
 
 ``--measure group`` reads POCA's mean group reward (DungeonEscape), ``elo`` self-play's ELO
-(``--behavior Goalie``: one behavior's, where a game has two).
+(``--behavior Striker``: one behavior's, where a game has two).
 An imitation config (``imitation_Pyramids.yaml``) takes ``--demo-steps 5000``: both
 trainers then read one recording of unitysim's scripted expert as its ``demo_path``.
 """

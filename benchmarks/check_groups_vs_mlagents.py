@@ -23,14 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from check_ppo_vs_mlagents import anchor_workarounds, main
-from check_trajectories_vs_mlagents import (
-    BRANCH,
-    agreement,
-    mlagents_trajectories,
-    our_segments,
-    unity_steps,
-)
+from check_ppo_vs_mlagents import main
+from check_trajectories_vs_mlagents import BRANCH, mlagents_agreement, our_segments, unity_steps
 
 GROUPS, SIZE, EXCHANGES, HORIZON = 2, 3, 300, 6
 Mates = tuple[tuple[int, float, int, bool], ...]  # (observation number, reward, action, done)
@@ -178,38 +172,36 @@ def ours(seed: int, out: Path) -> None:
     out.write_bytes(pickle.dumps({"exchanges": exchanges, "rows": rows}))
 
 
+def described(trajectory: Any) -> Trajectory:
+    """One of ML-Agents' trajectories as ``ours`` writes a row, groupmates included."""
+    steps = tuple(
+        (
+            int(s.obs[0][1]),
+            int(s.action.discrete[0]),
+            float(s.reward),
+            float(s.group_reward),
+            tuple(
+                sorted(
+                    (int(m.obs[0][1]), float(m.reward), int(m.action.discrete[0]), m.done)
+                    for m in s.group_status
+                )
+            ),
+        )
+        for s in trajectory.steps
+    )
+    last = trajectory.steps[-1]
+    return (
+        steps,
+        bool(last.done and not last.interrupted),
+        int(trajectory.next_obs[0][1]),
+        tuple(sorted(int(o[0][1]) for o in trajectory.next_group_obs)),
+    )
+
+
 def mlagents(case: Path, anchor: Path) -> float:
     """ML-Agents' agent processor on the case's stream; returns 0 when its trajectories
     are ours, else the share of trajectories that differ."""
-    anchor_workarounds(anchor)
-    case_data = pickle.loads(case.read_bytes())
-    theirs: list[Trajectory] = []
-    for trajectory in mlagents_trajectories(case_data["exchanges"], grouped_steps, HORIZON):
-        steps = tuple(
-            (
-                int(s.obs[0][1]),
-                int(s.action.discrete[0]),
-                float(s.reward),
-                float(s.group_reward),
-                tuple(
-                    sorted(
-                        (int(m.obs[0][1]), float(m.reward), int(m.action.discrete[0]), m.done)
-                        for m in s.group_status
-                    )
-                ),
-            )
-            for s in trajectory.steps
-        )
-        last = trajectory.steps[-1]
-        theirs.append(
-            (
-                steps,
-                bool(last.done and not last.interrupted),
-                int(trajectory.next_obs[0][1]),
-                tuple(sorted(int(o[0][1]) for o in trajectory.next_group_obs)),
-            )
-        )
-    return agreement(theirs, case_data["rows"])
+    return mlagents_agreement(case, anchor, grouped_steps, HORIZON, described)
 
 
 if __name__ == "__main__":

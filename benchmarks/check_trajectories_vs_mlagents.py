@@ -198,26 +198,34 @@ def agreement(theirs: list[Any], mine: list[Any]) -> float:
     return 0.0 if theirs == mine else max(len(differ), 1) / max(len(theirs), 1)
 
 
+def mlagents_agreement(
+    case: Path, anchor: Path, unity: Steps, horizon: int, described: Callable[[Any], Any]
+) -> float:
+    """ML-Agents' agent processor on the case's stream, each trajectory ``described`` as
+    ours wrote its rows; returns 0 when they are ours, else the share that differ."""
+    anchor_workarounds(anchor)
+    case_data = pickle.loads(case.read_bytes())
+    trajectories = mlagents_trajectories(case_data["exchanges"], unity, horizon)
+    return agreement([described(t) for t in trajectories], case_data["rows"])
+
+
+def described(trajectory: Any) -> Trajectory:
+    """One of ML-Agents' trajectories as ``ours`` writes a row."""
+    steps, last = trajectory.steps, trajectory.steps[-1]
+    return (
+        tuple(int(s.obs[0][1]) for s in steps),
+        tuple(int(s.action.discrete[0]) for s in steps),
+        tuple(float(s.action_probs.discrete[0]) for s in steps),
+        tuple(float(s.reward) for s in steps),
+        bool(last.done and not last.interrupted),
+        int(trajectory.next_obs[0][1]),
+    )
+
+
 def mlagents(case: Path, anchor: Path) -> float:
     """ML-Agents' agent processor on the case's stream; returns 0 when its trajectories
     are ours, else the share of trajectories that differ."""
-    anchor_workarounds(anchor)
-    case_data = pickle.loads(case.read_bytes())
-    theirs: list[Trajectory] = []
-    for trajectory in mlagents_trajectories(case_data["exchanges"], unity_steps, HORIZON):
-        steps = trajectory.steps
-        last = steps[-1]
-        theirs.append(
-            (
-                tuple(int(s.obs[0][1]) for s in steps),
-                tuple(int(s.action.discrete[0]) for s in steps),
-                tuple(float(s.action_probs.discrete[0]) for s in steps),
-                tuple(float(s.reward) for s in steps),
-                bool(last.done and not last.interrupted),
-                int(trajectory.next_obs[0][1]),
-            )
-        )
-    return agreement(theirs, case_data["rows"])
+    return mlagents_agreement(case, anchor, unity_steps, HORIZON, described)
 
 
 if __name__ == "__main__":
