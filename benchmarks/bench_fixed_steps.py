@@ -16,7 +16,8 @@ stretch between marks (mlagents-learn's from the steps at which each update bega
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
 
 ``--measure group`` reads POCA's mean group reward (DungeonEscape), ``elo`` self-play's ELO
-(``--behavior Striker``: one behavior's, where a game has two).
+(``--behavior Striker``: one behavior's, where a game has two). ``--ours-option
+--mixed-precision`` (repeatable) adds an option to ours' command line.
 An imitation config (``imitation_Pyramids.yaml``) takes ``--demo-steps 5000``: both
 trainers then read one recording of unitysim's scripted expert as its ``demo_path``.
 """
@@ -78,6 +79,7 @@ def our_run(
     prefix = [sys.executable, "-m", "driver.cli", "train"]
     results = work / "ours"
     command = our_command(prefix, config, build, run_id, results, seed, args.cap)
+    command += args.ours_option
     run = Run(name, seed)
     run_command(
         command, {"PYTHONPATH": str(tree)}, run, signal.SIGINT, work / f"{run_id}.log", None,
@@ -168,6 +170,9 @@ def main() -> int:
     parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run too")
     parser.add_argument("--also-config", help="a second config in mlagents_configs/, ours only")
     parser.add_argument("--behavior", help="read this behavior's summaries only (None: any)")
+    parser.add_argument(
+        "--ours-option", action="append", default=[], help="one more option of ours' train"
+    )
     parser.add_argument("--anchor", type=Path, default=ANCHOR_DIR)
     parser.add_argument("--cap", type=float, default=1800.0, help="seconds: a safety stop")
     parser.add_argument("--work", type=Path, help="keep builds, logs and runs here")
@@ -196,7 +201,8 @@ def main() -> int:
         thread.join()
         runs += anchor
         print(json.dumps(anchor[0] if anchor else {"mlagents-learn": "failed", "seed": seed}))
-    result = {"machine": machine(), "config": args.config, "runs": runs}
+    result = {"machine": machine(), "config": args.config, "ours_options": args.ours_option}
+    result["runs"] = runs
     result["medians"] = medians(runs, args)
     print(json.dumps(result["medians"], indent=1))
     if args.json:

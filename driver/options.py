@@ -188,7 +188,7 @@ class TrainOptions:
         aliases=("--torch-device",),
     )
     mixed_precision: bool = option(
-        False, "the learner runs its image encoders in bfloat16 autocast"
+        False, "the learner runs its hidden layers in bfloat16 autocast (heads in float32)"
     )
     deterministic: bool = option(
         False,

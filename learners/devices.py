@@ -7,8 +7,9 @@ The choice comes from ``--device`` or the trainer config's ``torch_settings.devi
 (``Compute.of``). Workers always act on CPU, and the learner publishes CPU weights.
 
 Batches go to the device once per update (pinned first, so the copy is asynchronous);
-with ``mixed_precision`` the image encoders run in bfloat16 autocast, which needs no loss
-scaling, and everything after them in float32.
+with ``mixed_precision`` the hidden layers (image encoders, trunks, POCA's group critic)
+run in bfloat16 autocast, which needs no loss scaling, and the heads, losses and optimizer
+in float32 (``learners.mixed``).
 """
 
 from __future__ import annotations
@@ -85,12 +86,16 @@ class Compute:
         return torch.device(self.device)
 
     def place(self, network: torch.nn.Module) -> None:
-        """Move a network to the device; on a GPU its convolutions' weights go channels-last,
-        as the encoders' inputs do there (cuDNN's fast kernels are NHWC: with NCHW they
-        transposed every tensor, 17% of an H100's time in a nature_cnn update)."""
+        """Move a network to the device, its hidden layers under this mixed precision; on
+        a GPU its convolutions' weights go channels-last, as the encoders' inputs do there
+        (cuDNN's fast kernels are NHWC: with NCHW they transposed every tensor, 17% of an
+        H100's time in a nature_cnn update)."""
         import torch
 
+        from learners.mixed import set_autocast
+
         network.to(self.torch_device)
+        set_autocast(network, self.autocast)
         if self.torch_device.type == "cuda":
             network.to(memory_format=torch.channels_last)
 

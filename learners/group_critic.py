@@ -15,11 +15,13 @@ As ML-Agents' ``MultiAgentNetworkBody`` and ``POCAValueNetwork`` build it:
 ``value``: every member by its observation alone, the group's value. ``baseline``: the
 agent by its observation, each groupmate by observation and action: the counterfactual
 baseline that marginalizes the agent's own action. Absent places (``present`` False)
-are masked out of the attention and the mean.
+are masked out of the attention and the mean. With the learner's mixed precision all but
+the value head run in bfloat16 autocast.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -27,6 +29,7 @@ from mlagents_envs.base_env import BehaviorSpec
 from torch import nn
 
 from learners.encoders import kaiming_linear
+from learners.mixed import Autocast
 from learners.sensors import SensorEncoder
 from learners.settings import NetworkSettings
 
@@ -97,6 +100,8 @@ class GroupCritic(nn.Module):
         nn.init.xavier_uniform_(self.value_head.weight)
         nn.init.zeros_(self.value_head.bias)
         self.register_buffer("most_agents", torch.tensor(1.0))
+        # the learner's mixed precision (``learners.mixed``): all but the head in bfloat16
+        self.autocast: Autocast = contextlib.nullcontext
 
     def update_normalization(self, obs: dict[str, torch.Tensor]) -> None:
         """Fold the agents' own observations into this critic's running statistics."""
@@ -131,9 +136,10 @@ class GroupCritic(nn.Module):
         present: torch.Tensor,
     ) -> torch.Tensor:
         """V of the group: the agent ``obs [B, ...]`` and its groupmates ``[B, M, ...]``."""
-        own = self.obs_embedding(self.encode(obs, 1)).unsqueeze(1)
-        others = self.obs_embedding(self.encode(mates, 2))
-        return self._head(torch.cat([own, others], 1), present)
+        with self.autocast():
+            own = self.obs_embedding(self.encode(obs, 1)).unsqueeze(1)
+            others = self.obs_embedding(self.encode(mates, 2))
+            return self._head(torch.cat([own, others], 1), present)
 
     def baseline(
         self,
@@ -144,9 +150,11 @@ class GroupCritic(nn.Module):
     ) -> torch.Tensor:
         """The agent's counterfactual baseline: its observation without its action, and
         the groupmates with theirs (``mate_action``: ``flat_action``, ``[B, M, A]``)."""
-        own = self.obs_embedding(self.encode(obs, 1)).unsqueeze(1)
-        others = self.obs_action_embedding(torch.cat([self.encode(mates, 2), mate_action], -1))
-        return self._head(torch.cat([own, others], 1), present)
+        with self.autocast():
+            own = self.obs_embedding(self.encode(obs, 1)).unsqueeze(1)
+            mates_in = torch.cat([self.encode(mates, 2), mate_action], -1)
+            others = self.obs_action_embedding(mates_in)
+            return self._head(torch.cat([own, others], 1), present)
 
     def _head(self, entities: torch.Tensor, mates_present: torch.Tensor) -> torch.Tensor:
         own = mates_present.new_ones(len(mates_present), 1)
@@ -155,5 +163,6 @@ class GroupCritic(nn.Module):
         with torch.no_grad():
             self.most_agents.copy_(torch.maximum(self.most_agents, count.max()))
         scaled = count * 2.0 / self.most_agents - 1
-        encoded = self.trunk(self.attention(entities, present))
-        return self.value_head(torch.cat([encoded, scaled], -1)).squeeze(-1)
+        encoded = self.trunk(self.attention(entities, present)).float()
+        with torch.autocast(encoded.device.type, enabled=False):  # the head in float32
+            return self.value_head(torch.cat([encoded, scaled], -1)).squeeze(-1)

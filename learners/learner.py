@@ -245,7 +245,6 @@ class CentralLearner:
         if key not in self.behaviors:
             network = self.factory.network(key, spec_from_dict(spec))
             self.compute.place(network)
-            network.autocast = self.compute.autocast
             self.behaviors[key] = BehaviorState(
                 spec,
                 settings,

@@ -24,9 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Callable, Mapping, Sequence
-from contextlib import AbstractContextManager
-from typing import Any
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -42,6 +40,7 @@ from learners.acting import (
     to_unity,
     trunk_input_width,
 )
+from learners.mixed import Autocast, Body
 from learners.sensors import SensorEncoder
 from learners.settings import NetworkSettings
 
@@ -55,12 +54,12 @@ def tanh_log_det(u: torch.Tensor) -> torch.Tensor:
     return 2.0 * (_LOG_2 - u - torch.nn.functional.softplus(-2.0 * u))
 
 
-def _mlp(width: int, settings: NetworkSettings) -> nn.Sequential:
+def _mlp(width: int, settings: NetworkSettings) -> Body:
     layers: list[nn.Module] = []
     for _ in range(settings.num_layers):
         layers += [nn.Linear(width, settings.hidden_units), nn.SiLU()]
         width = settings.hidden_units
-    return nn.Sequential(*layers)
+    return Body(*layers)
 
 
 class ActorCritic(nn.Module):
@@ -112,8 +111,8 @@ class ActorCritic(nn.Module):
             rng = np.random.default_rng(int(torch.randint(2**31 - 1, ())))
             initial = initial_weights(spec, settings, rng)
         self.load_state_dict({k: torch.from_numpy(v) for k, v in initial.items()})
-        # the learner's mixed precision (``devices.Compute.autocast``): images in bfloat16
-        self.autocast: Callable[[], AbstractContextManager[Any]] = contextlib.nullcontext
+        # the learner's mixed precision (``learners.mixed``): image encoders in bfloat16
+        self.autocast: Autocast = contextlib.nullcontext
 
     def update_normalization(
         self, obs: dict[str, torch.Tensor], rows: torch.Tensor | None = None

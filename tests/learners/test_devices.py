@@ -130,7 +130,7 @@ def test_uint8_images_train_like_their_float_form():
 
 
 @pytest.mark.parametrize("mixed", [False, True])
-def test_mixed_precision_runs_the_image_encoders_in_bfloat16_and_the_rest_in_float32(mixed):
+def test_mixed_precision_runs_the_hidden_layers_in_bfloat16_and_the_heads_in_float32(mixed):
     spec = BehaviorSpec([IMAGE, VECTOR], ActionSpec(0, (3,)))
     config = parse_config(
         {"behaviors": {"B": {"hyperparameters": {"buffer_size": 16, "batch_size": 16}}}}
@@ -138,17 +138,28 @@ def test_mixed_precision_runs_the_image_encoders_in_bfloat16_and_the_rest_in_flo
     learner = CentralLearner(config, compute=Compute("cpu", mixed_precision=mixed))
     learner.submit([segment(spec, 1, 1, behavior="B?team=0")])
     network = learner.behaviors["B?team=0"].network
-    seen: dict[str, set[torch.dtype]] = {"conv": set(), "trunk": set()}
+    seen: dict[str, set[torch.dtype]] = {"conv": set(), "trunk": set(), "critic": set()}
+    seen |= {"trunk out": set(), "logits in": set(), "value in": set(), "value out": set()}
     conv = next(m for m in network.encoders[0].modules() if isinstance(m, torch.nn.Conv2d))
     conv.register_forward_hook(lambda m, i, o: seen["conv"].add(o.dtype))
-    network.trunk.register_forward_pre_hook(lambda m, i: seen["trunk"].add(i[0].dtype))
+    network.trunk[0].register_forward_hook(lambda m, i, o: seen["trunk"].add(o.dtype))
+    network.critic_trunk[0].register_forward_hook(lambda m, i, o: seen["critic"].add(o.dtype))
+    network.trunk.register_forward_hook(lambda m, i, o: seen["trunk out"].add(o.dtype))
+    network.logits.register_forward_pre_hook(lambda m, i: seen["logits in"].add(i[0].dtype))
+    network.value.register_forward_pre_hook(lambda m, i: seen["value in"].add(i[0].dtype))
+    network.value.register_forward_hook(lambda m, i, o: seen["value out"].add(o.dtype))
     learner.submit([segment(spec, 2, 16, behavior="B?team=0", seed=4)])
     report = learner.drain_reports()[0][2]
     # the gradient passes and GAE's value pass (where CUDA autocast once met torchrl's vmap
-    # and crashed) in bfloat16
-    assert seen["conv"] == ({torch.bfloat16} if mixed else {torch.float32})
-    assert seen["trunk"] == {torch.float32}
+    # and crashed) in bfloat16, the heads after them in float32
+    hidden = {torch.bfloat16} if mixed else {torch.float32}
+    assert seen["conv"] == seen["trunk"] == seen["critic"] == hidden
+    for where in ("trunk out", "logits in", "value in", "value out"):
+        assert seen[where] == {torch.float32}, where
     assert all(torch.isfinite(torch.tensor(v)) for v in report.values())
+    for parameter in network.parameters():  # weights and their gradients stay float32
+        assert parameter.dtype == torch.float32
+        assert parameter.grad is None or parameter.grad.dtype == torch.float32
 
 
 @pytest.mark.parametrize("encoder", ["simple", "nature_cnn", "resnet", "match3", "fully_connected"])

@@ -14,6 +14,7 @@ from mlagents_envs.base_env import DecisionSteps, TerminalSteps
 
 from batches import keys
 from learners.config import defaults
+from learners.devices import Compute
 from learners.group_critic import GroupCritic
 from learners.poca import POCA
 from learners.policies import ActorCritic
@@ -244,3 +245,38 @@ def test_an_agent_alone_in_its_group_is_valued_as_one_whose_groupmates_are_all_a
     assert value.shape == baseline.shape == (5,)
     torch.testing.assert_close(value, critic.value(obs, mates, absent))
     torch.testing.assert_close(baseline, critic.baseline(obs, mates, action, absent))
+
+
+def test_mixed_precision_runs_the_group_critic_in_bfloat16_and_its_head_in_float32():
+    """The learner's bfloat16 reaches the critic's embeddings, attention and trunk; its
+    value head, the values and the losses stay float32, and values stay within bfloat16's
+    precision of their float32 form."""
+    torch.manual_seed(0)
+    network = ActorCritic(SPEC, NET)
+    mixed = POCA(network, settings(buffer_size=32, batch_size=16), Compute("cpu", True))
+    critic = mixed.critic
+    seen: dict[str, set[torch.dtype]] = {"attention": set(), "trunk": set(), "head": set()}
+    critic.attention.q.register_forward_hook(lambda m, i, o: seen["attention"].add(o.dtype))
+    critic.trunk[0].register_forward_hook(lambda m, i, o: seen["trunk"].add(o.dtype))
+    critic.value_head.register_forward_pre_hook(lambda m, i: seen["head"].add(i[0].dtype))
+    obs, mates = {"vector": torch.randn(64, 3)}, {"vector": torch.randn(64, 2, 3)}
+    present = torch.rand(64, 2) > 0.3
+    with torch.no_grad():
+        value = critic.value(obs, mates, present)
+    assert seen == {
+        "attention": {torch.bfloat16},
+        "trunk": {torch.bfloat16},
+        "head": {torch.float32},
+    }
+    assert value.dtype == torch.float32
+    plain = GroupCritic(SPEC, NET)
+    plain.load_state_dict(critic.state_dict())
+    with torch.no_grad():
+        exact = plain.value(obs, mates, present)
+    assert not torch.equal(value, exact)
+    torch.testing.assert_close(value, exact, rtol=0.03, atol=0.03 * float(exact.abs().max()))
+    for batch in group_game(4):
+        mixed.add(batch, torch.zeros(len(batch), dtype=torch.int64))
+    report = mixed.update(progress=0.0)
+    assert all(np.isfinite(v) for v in report.values())
+    assert all(p.grad is None or p.grad.dtype == torch.float32 for p in critic.parameters())
