@@ -201,8 +201,12 @@ def main() -> int:
         thread.join()
         runs += anchor
         print(json.dumps(anchor[0] if anchor else {"mlagents-learn": "failed", "seed": seed}))
-    result = {"machine": machine(), "config": args.config, "ours_options": args.ours_option}
-    result["runs"] = runs
+    result = {
+        "machine": machine(),
+        "config": args.config,
+        "ours_options": args.ours_option,
+        "runs": runs,
+    }
     result["medians"] = medians(runs, args)
     print(json.dumps(result["medians"], indent=1))
     if args.json:

@@ -139,7 +139,7 @@ class GroupCritic(nn.Module):
         with self.autocast():
             own = self.obs_embedding(self.encode(obs, 1)).unsqueeze(1)
             others = self.obs_embedding(self.encode(mates, 2))
-            return self._head(torch.cat([own, others], 1), present)
+        return self._head(torch.cat([own, others], 1), present)
 
     def baseline(
         self,
@@ -154,7 +154,7 @@ class GroupCritic(nn.Module):
             own = self.obs_embedding(self.encode(obs, 1)).unsqueeze(1)
             mates_in = torch.cat([self.encode(mates, 2), mate_action], -1)
             others = self.obs_action_embedding(mates_in)
-            return self._head(torch.cat([own, others], 1), present)
+        return self._head(torch.cat([own, others], 1), present)
 
     def _head(self, entities: torch.Tensor, mates_present: torch.Tensor) -> torch.Tensor:
         own = mates_present.new_ones(len(mates_present), 1)
@@ -163,6 +163,6 @@ class GroupCritic(nn.Module):
         with torch.no_grad():
             self.most_agents.copy_(torch.maximum(self.most_agents, count.max()))
         scaled = count * 2.0 / self.most_agents - 1
-        encoded = self.trunk(self.attention(entities, present)).float()
-        with torch.autocast(encoded.device.type, enabled=False):  # the head in float32
-            return self.value_head(torch.cat([encoded, scaled], -1)).squeeze(-1)
+        with self.autocast():
+            encoded = self.trunk(self.attention(entities, present))
+        return self.value_head(torch.cat([encoded.float(), scaled], -1)).squeeze(-1)
