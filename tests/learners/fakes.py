@@ -10,6 +10,8 @@ from tensordict import TensorDict
 from batches import keys
 from batches.specs import log_prob_size, spec_to_dict, step_spec
 
+# the devices a learner test can run on here: the CPU, and CUDA on a machine that has it
+DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
 VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
 GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
 IMAGE = ObservationSpec(  # the default (simple) encoder's smallest image

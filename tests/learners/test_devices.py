@@ -1,4 +1,5 @@
-"""The learner's device plumbing, as far as it goes on a machine without a GPU.
+"""The learner's device plumbing, as far as it goes on a machine without a GPU (the mixed
+precision tests also run on CUDA where there is one).
 
 A CUDA run cannot happen here, so the update paths are run with torch's default device set
 to ``meta``: every tensor the learner creates without naming a device then lands on
@@ -16,7 +17,7 @@ from batches import keys
 from learners.config import ConfigError, parse_config
 from learners.devices import Compute, DeviceError, check_device, learner_device, to_cpu
 from learners.learner import CentralLearner
-from tests.learners.fakes import IMAGE, VECTOR, segment
+from tests.learners.fakes import DEVICES, IMAGE, VECTOR, segment
 
 
 def test_device_names_are_checked_in_one_line():
@@ -129,13 +130,14 @@ def test_uint8_images_train_like_their_float_form():
     assert reports[0]["Losses/Policy Loss"] == pytest.approx(reports[1]["Losses/Policy Loss"])
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("mixed", [False, True])
-def test_mixed_precision_runs_the_hidden_layers_in_bfloat16_and_the_heads_in_float32(mixed):
+def test_mixed_precision_runs_the_hidden_layers_in_bfloat16_and_the_heads_in_float32(mixed, device):
     spec = BehaviorSpec([IMAGE, VECTOR], ActionSpec(0, (3,)))
     config = parse_config(
         {"behaviors": {"B": {"hyperparameters": {"buffer_size": 16, "batch_size": 16}}}}
     )
-    learner = CentralLearner(config, compute=Compute("cpu", mixed_precision=mixed))
+    learner = CentralLearner(config, compute=Compute.of(device, mixed_precision=mixed))
     learner.submit([segment(spec, 1, 1, behavior="B?team=0")])
     network = learner.behaviors["B?team=0"].network
     seen: dict[str, set[torch.dtype]] = {"conv": set(), "trunk": set(), "critic": set()}
@@ -166,9 +168,10 @@ def test_mixed_precision_runs_the_hidden_layers_in_bfloat16_and_the_heads_in_flo
 @pytest.mark.parametrize(
     ("trainer", "actions"), [("ppo", (0, (3,))), ("impala", (0, (3,))), ("sac", (2, ()))]
 )
-def test_mixed_precision_updates_every_trainer_and_encoder(trainer, actions, encoder):
+@pytest.mark.parametrize("device", DEVICES)
+def test_mixed_precision_updates_every_trainer_and_encoder(trainer, actions, encoder, device):
     """bfloat16 autocast through every trainer's whole update, value estimates included,
-    for each of ML-Agents' image encoders (on the CPU: the same autocast code as CUDA's)."""
+    for each of ML-Agents' image encoders."""
     from mlagents_envs.base_env import DimensionProperty, ObservationSpec
     from mlagents_envs.base_env import ObservationType as Obs
 
@@ -184,7 +187,7 @@ def test_mixed_precision_updates_every_trainer_and_encoder(trainer, actions, enc
     network = {"vis_encode_type": encoder, "hidden_units": 16}
     behavior = {"trainer_type": trainer, "hyperparameters": hyper, "network_settings": network}
     config = parse_config({"behaviors": {"B": behavior}})
-    learner = CentralLearner(config, compute=Compute("cpu", mixed_precision=True))
+    learner = CentralLearner(config, compute=Compute.of(device, mixed_precision=True))
     learner.submit([segment(spec, 2, 9, behavior="B?team=0", seed=2)])
     reports = learner.drain_reports()
     assert reports, "no update ran"

@@ -11,13 +11,14 @@ import torch
 
 from batches.expert_steps import ExpertSteps
 from learners.config import ConfigError, parse_config
+from learners.devices import Compute
 from learners.gail import GAIL
 from learners.intrinsic import RND, Curiosity
 from learners.policies import ActorCritic
 from learners.ppo import PPO
 from learners.settings import Hyperparameters, NetworkSettings, RewardSignalSettings
 from learners.signal_base import Transitions
-from tests.learners.fakes import segment, vector_spec
+from tests.learners.fakes import DEVICES, segment, vector_spec
 
 SMALL = NetworkSettings(hidden_units=32, num_layers=2)
 
@@ -93,7 +94,11 @@ def test_curiosity_learns_a_transition_and_caps_its_reward():
     assert last["Losses/Curiosity Inverse Loss"] < first["Losses/Curiosity Inverse Loss"] / 2
 
 
-def ppo_with(signals: tuple[RewardSignalSettings, ...], experts: dict | None = None) -> PPO:
+def ppo_with(
+    signals: tuple[RewardSignalSettings, ...],
+    experts: dict | None = None,
+    compute: Compute | None = None,
+) -> PPO:
     torch.manual_seed(0)
     spec = vector_spec(4, branches=(2,))
     settings = parse_config({}).default
@@ -102,7 +107,10 @@ def ppo_with(signals: tuple[RewardSignalSettings, ...], experts: dict | None = N
         network_settings=SMALL,
         reward_signals=signals,
     )
-    return PPO(ActorCritic(spec, SMALL), settings, experts=experts)
+    policy = ActorCritic(spec, SMALL)
+    if compute is not None:
+        compute.place(policy)
+    return PPO(policy, settings, compute=compute, experts=experts)
 
 
 def test_each_signal_has_its_value_head_and_bootstraps_at_an_episodes_end():
@@ -226,3 +234,25 @@ def test_signals_train_beside_ppos_epochs_and_one_seed_gives_one_run():
         assert any(not torch.equal(a, b) for a, b in zip(policy, now, strict=True))
         ends.append([*trained, *now, *ppo.signals.items[0].parameters()])
     assert all(torch.equal(a, b) for a, b in zip(*ends, strict=True))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_every_signal_trains_under_mixed_precision(device):
+    """bfloat16 autocast in the policy's hidden layers beside curiosity, RND and GAIL (whose
+    networks stay float32): every loss finite, every signal's network trained."""
+    experts = {"e.demo": expert_steps_of(torch.randn(64, 4), torch.ones(64, 1).long())}
+    signals = (
+        RewardSignalSettings("curiosity", network_settings=SMALL),
+        RewardSignalSettings("rnd", network_settings=SMALL),
+        RewardSignalSettings("gail", network_settings=SMALL, demo_path="e.demo"),
+    )
+    ppo = ppo_with(signals, experts, Compute.of(device, mixed_precision=True))
+    before = [[p.detach().clone() for p in item.parameters()] for item in ppo.signals.items]
+    ppo.add(segment(vector_spec(4, branches=(2,)), rows=2, steps=8), torch.zeros(16).long())
+    report = ppo.update(progress=0.1)
+    for tag in ("Losses/Curiosity Forward Loss", "Losses/RND Loss", "Losses/GAIL Loss"):
+        assert tag in report, tag
+    assert all(np.isfinite(v) for v in report.values())
+    for item, start in zip(ppo.signals.items, before, strict=True):
+        now = list(item.parameters())
+        assert any(not torch.equal(a, b) for a, b in zip(start, now, strict=True)), item

@@ -22,7 +22,7 @@ from learners.settings import NetworkSettings
 from learners.trajectory_store import TrajectoryStore
 from rollout.decisions import Decisions
 from rollout.segments import SegmentBuilder
-from tests.learners.fakes import vector_spec
+from tests.learners.fakes import DEVICES, vector_spec
 
 SPEC = vector_spec(3, branches=(2,))
 NET = NetworkSettings(hidden_units=16, num_layers=1)
@@ -247,13 +247,16 @@ def test_an_agent_alone_in_its_group_is_valued_as_one_whose_groupmates_are_all_a
     torch.testing.assert_close(baseline, critic.baseline(obs, mates, action, absent))
 
 
-def test_mixed_precision_runs_the_group_critic_in_bfloat16_and_its_head_in_float32():
+@pytest.mark.parametrize("device", DEVICES)
+def test_mixed_precision_runs_the_group_critic_in_bfloat16_and_its_head_in_float32(device):
     """The learner's bfloat16 reaches the critic's embeddings, attention and trunk; its
     value head, the values and the losses stay float32, and values stay within bfloat16's
     precision of their float32 form."""
     torch.manual_seed(0)
     network = ActorCritic(SPEC, NET)
-    mixed = POCA(network, settings(buffer_size=32, batch_size=16), Compute("cpu", True))
+    compute = Compute.of(device, mixed_precision=True)
+    compute.place(network)
+    mixed = POCA(network, settings(buffer_size=32, batch_size=16), compute)
     critic = mixed.critic
     seen: dict[str, set[torch.dtype]] = {"attention": set(), "trunk": set(), "head": set()}
     critic.attention.q.register_forward_hook(lambda m, i, o: seen["attention"].add(o.dtype))
@@ -261,8 +264,11 @@ def test_mixed_precision_runs_the_group_critic_in_bfloat16_and_its_head_in_float
     critic.value_head.register_forward_pre_hook(lambda m, i: seen["head"].add(i[0].dtype))
     obs, mates = {"vector": torch.randn(64, 3)}, {"vector": torch.randn(64, 2, 3)}
     present = torch.rand(64, 2) > 0.3
+    on = compute.torch_device
     with torch.no_grad():
-        value = critic.value(obs, mates, present)
+        value = critic.value(
+            {"vector": obs["vector"].to(on)}, {"vector": mates["vector"].to(on)}, present.to(on)
+        ).cpu()
     assert seen == {
         "attention": {torch.bfloat16},
         "trunk": {torch.bfloat16},
@@ -270,7 +276,7 @@ def test_mixed_precision_runs_the_group_critic_in_bfloat16_and_its_head_in_float
     }
     assert value.dtype == torch.float32
     plain = GroupCritic(SPEC, NET)
-    plain.load_state_dict(critic.state_dict())
+    plain.load_state_dict({k: v.cpu() for k, v in critic.state_dict().items()})
     with torch.no_grad():
         exact = plain.value(obs, mates, present)
     assert not torch.equal(value, exact)
