@@ -99,7 +99,8 @@ def ingestion_in_process(
 
     torch.set_num_threads(1)
     config = load_config(CONFIG_DIR / LEARNER_CONFIGS[kind])
-    learner = CentralLearner(config, torch_threads=1, compute=Compute.of(device))
+    # no max_steps of its config (300k): past it, a learner stops updating
+    learner = CentralLearner(config, 10**9, torch_threads=1, compute=Compute.of(device))
     learner.prepare()
     number = 0
     while learner.stats.updates < 2:  # warm up: first update's allocations
