@@ -43,6 +43,9 @@ from testkit.synthetic import SyntheticWorker, replayed
 
 UNITY = UnityConfig("unitysim:3DBall")
 LEARNER_CONFIGS = {"ppo": "3DBall.yaml", "impala": "3DBall_impala.yaml"}
+# the learners' max_steps: never reached (past their configs' own, 300k, a learner stops
+# updating, and a GPU learner passes that within a window)
+NO_STEP_LIMIT = 10**9
 
 
 def routing(workers: int, seconds: float, registry: str) -> dict[str, Any]:
@@ -99,8 +102,7 @@ def ingestion_in_process(
 
     torch.set_num_threads(1)
     config = load_config(CONFIG_DIR / LEARNER_CONFIGS[kind])
-    # no max_steps of its config (300k): past it, a learner stops updating
-    learner = CentralLearner(config, 10**9, torch_threads=1, compute=Compute.of(device))
+    learner = CentralLearner(config, NO_STEP_LIMIT, torch_threads=1, compute=Compute.of(device))
     learner.prepare()
     number = 0
     while learner.stats.updates < 2:  # warm up: first update's allocations
@@ -126,7 +128,7 @@ def ingestion_actor(
     kind: str, recorded: list[Any], seconds: float, device: str = "cpu"
 ) -> dict[str, Any]:
     config = load_config(CONFIG_DIR / LEARNER_CONFIGS[kind])
-    learner = learner_actor(config, 10**9, device=device)
+    learner = learner_actor(config, NO_STEP_LIMIT, device=device)
     try:
         number, version, in_flight = 0, 0, []
 

@@ -14,7 +14,7 @@ from mlagents_envs.base_env import DecisionSteps, TerminalSteps
 
 from batches import keys
 from learners.config import defaults
-from learners.devices import Compute
+from learners.devices import Compute, to_cpu
 from learners.group_critic import GroupCritic
 from learners.poca import POCA
 from learners.policies import ActorCritic
@@ -276,7 +276,7 @@ def test_mixed_precision_runs_the_group_critic_in_bfloat16_and_its_head_in_float
     }
     assert value.dtype == torch.float32
     plain = GroupCritic(SPEC, NET)
-    plain.load_state_dict({k: v.cpu() for k, v in critic.state_dict().items()})
+    plain.load_state_dict(to_cpu(critic.state_dict()))
     with torch.no_grad():
         exact = plain.value(obs, mates, present)
     assert not torch.equal(value, exact)
