@@ -16,7 +16,9 @@ stretch between marks (mlagents-learn's from the steps at which each update bega
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
 
 ``--measure group`` reads POCA's mean group reward (DungeonEscape), ``elo`` self-play's ELO
-(``--behavior Striker``: one behavior's, where a game has two). ``--ours-option
+(``--behavior Striker``: one behavior's, where a game has two; ``--anchor-first-brain
+Striker`` gives mlagents-learn's first turn to the team ours gives it to, which its hash
+seed otherwise picks). ``--ours-option
 --mixed-precision`` (repeatable) adds an option to ours' command line.
 An imitation config (``imitation_Pyramids.yaml``) takes ``--demo-steps 5000``: both
 trainers then read one recording of unitysim's scripted expert as its ``demo_path``.
@@ -26,8 +28,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
@@ -38,6 +42,8 @@ from bench_learning import scalars  # benchmarks/bench_learning.py
 from bench_vs_mlagents import build_player, with_demo
 from machine import machine  # benchmarks/machine.py
 from trainer_runs import ANCHOR_DIR, MEASURES, Run, anchor_command, our_command, run_command
+
+from unitysim.envs import load
 
 ROOT = Path(__file__).resolve().parent.parent
 HERE = Path(__file__).resolve().parent
@@ -53,6 +59,8 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
         seed,
     )  # fmt: skip
     env = {"PYTHONPATH": str(args.anchor / "shim"), "UPDATE_LOG": str(updates)}
+    if args.anchor_first_brain:
+        env["PYTHONHASHSEED"] = str(hash_seed_putting_first(args, args.anchor_first_brain))
     run = Run("mlagents-learn", seed)
     run_command(
         command, env, run, signal.SIGTERM, work / f"ml-{seed}.log", None, args.cap,
@@ -62,6 +70,26 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
     updates = [json.loads(line) for line in lines]  # [step, buffered, brain]
     mine = [u[0] for u in updates if args.behavior in (None, *u[2:])]  # one brain's own
     return report(run, steps_between(mine), args)
+
+
+def hash_seed_putting_first(args: argparse.Namespace, brain: str) -> int:
+    """A PYTHONHASHSEED under which mlagents-learn registers ``brain`` first.
+
+    It registers a build's behaviors in the order of a set of their names
+    (``TrainerController._register_new_behaviors``), and its ghost controller gives the
+    first team registered the first turn; unpinned, that order changes with each process's
+    hash seed. Ours gives it to the build's first behavior."""
+    names = [b.name for b in load(args.env).behaviors]
+    probe = "import sys; s = set(); s |= set(sys.argv[1:]); print(next(iter(s - set())))"
+    python = str(args.anchor / "venv/bin/python")
+    for seed in range(256):
+        env = {**os.environ, "PYTHONHASHSEED": str(seed)}
+        first = subprocess.run(
+            [python, "-c", probe, *names], env=env, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        if first.split("?")[0] == brain:
+            return seed
+    raise SystemExit(f"--anchor-first-brain: no hash seed puts {brain} first among {names}")
 
 
 def steps_between(at: list[int]) -> list[tuple[int, int]]:
@@ -129,6 +157,7 @@ def report(run: Run, sizes: list[tuple[int, int]], args: argparse.Namespace) -> 
         "seconds_at_or_above": seconds,
         "update_size": stretches,
         "leftover_processes": run.leftovers,
+        "first_brain": run.first_brain,
         "summaries": [(round(t, 1), step, value) for t, step, value in run.summaries],
     }
 
@@ -172,6 +201,9 @@ def main() -> int:
     parser.add_argument("--behavior", help="read this behavior's summaries only (None: any)")
     parser.add_argument(
         "--ours-option", action="append", default=[], help="one more option of ours' train"
+    )
+    parser.add_argument(
+        "--anchor-first-brain", help="self-play: mlagents-learn's first learning team's brain"
     )
     parser.add_argument("--anchor", type=Path, default=ANCHOR_DIR)
     parser.add_argument("--cap", type=float, default=1800.0, help="seconds: a safety stop")

@@ -40,6 +40,7 @@ class Run:
     wall_s: float = 0.0
     leftovers: int = 0
     log: Path | None = None
+    first_brain: str | None = None  # the first summary's: self-play's first learning team
     # summaries a level must hold for, on average: 1 reads the first summary at it; more
     # skip an early summary of the few short episodes (Hallway's first goals)
     held: int = 1
@@ -71,6 +72,7 @@ class Run:
             "targets": levels,
             "first_step_s": self.first_step_s,
             "first_summary_s": round(self.summaries[0][0], 1) if self.summaries else None,
+            "first_brain": self.first_brain,
             "best_reward": max((r for _, _, r in self.summaries), default=None),
             "exit_code": self.exit_code,
             "wall_s": round(self.wall_s, 1),
@@ -177,6 +179,7 @@ def run_command(
                 if (mark := MARK.search(line)) and run.first_step_s is None:
                     run.first_step_s = round(float(mark.group(1)) - started, 2)
                 if match := SUMMARY.search(line):
+                    run.first_brain = run.first_brain or match.group(1)
                     if behavior is not None and match.group(1) != behavior:
                         continue
                     reward = float(match.group(3))
