@@ -43,6 +43,7 @@ from bench_vs_mlagents import build_player, with_demo
 from machine import machine  # benchmarks/machine.py
 from trainer_runs import ANCHOR_DIR, MEASURES, Run, anchor_command, our_command, run_command
 
+from batches.contracts import base_name
 from unitysim.envs import load
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,8 +60,8 @@ def anchor_run(args: argparse.Namespace, seed: int, build: Path, work: Path) -> 
         seed,
     )  # fmt: skip
     env = {"PYTHONPATH": str(args.anchor / "shim"), "UPDATE_LOG": str(updates)}
-    if args.anchor_first_brain:
-        env["PYTHONHASHSEED"] = str(hash_seed_putting_first(args, args.anchor_first_brain))
+    if args.anchor_hash_seed is not None:
+        env["PYTHONHASHSEED"] = str(args.anchor_hash_seed)
     run = Run("mlagents-learn", seed)
     run_command(
         command, env, run, signal.SIGTERM, work / f"ml-{seed}.log", None, args.cap,
@@ -87,7 +88,7 @@ def hash_seed_putting_first(args: argparse.Namespace, brain: str) -> int:
         first = subprocess.run(
             [python, "-c", probe, *names], env=env, capture_output=True, text=True, check=True
         ).stdout.strip()
-        if first.split("?")[0] == brain:
+        if base_name(first) == brain:
             return seed
     raise SystemExit(f"--anchor-first-brain: no hash seed puts {brain} first among {names}")
 
@@ -213,6 +214,9 @@ def main() -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-fixed-steps-"))
     work.mkdir(parents=True, exist_ok=True)
     build = build_player(args.env, work)
+    args.anchor_hash_seed = (  # one for every seed: it depends on the names only
+        hash_seed_putting_first(args, args.anchor_first_brain) if args.anchor_first_brain else None
+    )
     args.config_path = with_demo(args.config, args.env, args.demo_steps, work)
     sides: list[Side] = [("ours", ROOT, args.config_path)]
     if args.base_tree:
