@@ -144,6 +144,7 @@ def _start_node(
         # machine's address anyway).
         env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
     env.update(
+        TMPDIR=str(temp_dir),  # the dashboard's forkserver leaves its socket dir here
         AUTOSCALER_METRIC_PORT=str(ports["autoscaler_metrics"]),  # fixed 44217 by default
         DASHBOARD_METRIC_PORT=str(ports["dashboard_metrics"]),  # fixed 44227 by default
         **{CLUSTER_TAG: tag},

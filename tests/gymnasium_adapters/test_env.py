@@ -230,8 +230,9 @@ def evaluate(env: gym.Env, policy, episodes: int, cap: int = 200) -> float:
     return float(np.mean(returns))
 
 
-def test_stable_baselines3_ppo_learns_basic(allocator):
+def test_stable_baselines3_ppo_learns_basic(allocator, tmp_path, monkeypatch):
     torch = pytest.importorskip("torch")
+    monkeypatch.setenv("SB3_LOGDIR", str(tmp_path))  # else each learn() leaves a dir in /tmp
     ppo = pytest.importorskip("stable_baselines3").PPO
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
