@@ -49,7 +49,8 @@ def rows_of(output: Output, ids: list[int], done: bool) -> dict[int, tuple[float
 def test_a_goal_ends_the_pitch_with_group_rewards(name, scorers, conceders):
     env = make(name)
     output = env.reset()
-    env.ball[0], env.ball_vel[0] = (7.5, 0.0), (10.0, 0.0)  # into the goal at +x
+    x = env.half[0] - 0.5
+    env.ball[0], env.ball_vel[0] = (x, 0.0), (10.0, 0.0)  # into the goal at +x
     rows = rows_of(step_until_done(env, output), scorers + conceders, done=True)
     assert sorted(rows) == sorted(scorers + conceders)  # the whole pitch, nobody else
     for agent in scorers:
@@ -66,6 +67,68 @@ def test_strikers_own_end_is_a_wall():
         output = env.step(idle(env, output))
         assert not any(infos.done.any() for infos in output.values())
     assert env.ball_vel[0, 0] > 0  # bounced
+
+
+def test_soccer_twos_is_laid_out_as_the_real_pitch():
+    """As ``SoccerEnvController.ResetScene``: each team in its own half, 3.2 to 13.2 from
+    the centre line, facing the other goal within 10 degrees; the ball near the centre."""
+    env = make("SoccerTwos", num_areas=4)  # 32 pitches
+    env.reset()
+    blue = env.team == 0  # attacks +x, starts at -x
+    x = np.where(blue, -env.pos[:, 0], env.pos[:, 0])
+    assert (x >= 3.19 - 1e-9).all() and (x <= 13.19 + 1e-9).all() and np.ptp(x) > 8
+    assert np.allclose(np.abs(env.pos[:, 1]), 1.2)
+    facing = np.where(blue, 0.0, np.pi) - env.heading
+    assert (np.abs(np.angle(np.exp(1j * facing))) <= np.radians(10.0) + 1e-9).all()
+    assert (np.abs(env.ball) <= 2.5).all() and env.half == (15.5, 7.5)
+
+
+def test_soccer_twos_agents_run_as_rigid_bodies_and_kick_when_going_forward():
+    """A velocity change of 2 a physics step against drag 3: 30 a second after 0.8 s of
+    running; a lateral action replaces the forward one at 0.3 of it. A forward
+    agent meeting the ball kicks it off at its own speed's bounce plus 13.3."""
+    env = make("SoccerTwos")
+    output = env.reset()
+    env.pos[:4] = [(-14.5, -5.0), (-10.0, 0.0), (-14.5, 5.0), (14.0, 3.0)]
+    env.heading[:4] = 0.0
+    env.ball[:] = (100.0, 100.0)  # out of the way
+    run = idle(env, output)
+    purple = "SoccerTwos?team=1"  # agents 0 and 2; blue: 1 and 3
+    run[purple].discrete[:] = (1, 0, 0)  # forward
+    run[purple].discrete[1] = (1, 1, 0)  # forward, and right: only right counts
+    for _ in range(8):  # 40 physics steps
+        output = env.step(run)
+    assert env.velocity[0, 0] == pytest.approx(2.0 / 0.06 * (1 - 1.06**-40), rel=1e-6)
+    assert env.velocity[0, 1] == 0.0
+    assert env.velocity[2, 0] == pytest.approx(0.0, abs=1e-9)  # only across, at 0.3
+    assert -env.velocity[2, 1] == pytest.approx(0.3 * env.velocity[0, 0], rel=1e-6)
+    assert env.velocity[1].tolist() == [0.0, 0.0]  # idle
+    env.ball[0], env.ball_vel[0] = env.pos[0] + (1.5, 0.0), (0.0, 0.0)
+    output = env.step(run)
+    # 1.8 x 50 / 53 of the closing speed, plus the kick, less the ball's drag since
+    assert 55.0 < env.ball_vel[0, 0] < 1.7 * 30.1 + 13.4 and env.ball_vel[0, 1] == 0.0
+    assert env.velocity[0, 0] < 30.0  # the ball took a little of the agent's momentum
+    env.ball[0], env.ball_vel[0] = env.pos[1] + (0.5, 0.0), (0.0, 0.0)  # touching, idle
+    env.step(run)
+    assert np.abs(env.ball_vel[0]).max() == pytest.approx(0.0, abs=1e-9)  # no kick at rest
+
+
+def test_soccer_twos_rays_are_sphere_casts():
+    """A ray of radius 0.5 finds the ball (radius 0.62) 10 away between two rays 12
+    degrees apart, where a thin ray would miss it."""
+    env = make("SoccerTwos")
+    output = env.reset()
+    env.pos[:4] = [(0.0, 0.0), (-14.0, -7.0), (-14.0, 7.0), (-14.0, 0.0)]
+    env.heading[0] = 0.0
+    angle = np.radians(6.0)
+    env.ball[0], env.ball_vel[0] = 10.0 * np.array([np.cos(angle), np.sin(angle)]), 0.0
+    output = env.step(idle(env, output))
+    infos = output["SoccerTwos?team=1"]
+    row = int(np.flatnonzero((infos.agent_id == 0) & ~infos.done)[0])
+    frame = infos.obs[0][row].reshape(3, 11, 8)[-1]  # the newest frame: 11 rays, 6 tags + 2
+    seen = np.flatnonzero(frame[:, 0] == 1.0)  # rays whose tag is the ball
+    assert len(seen) == 2  # the centre ray and the first to its left, neither straight at it
+    assert (frame[seen, 7] * 20.0 < 10.0).all()
 
 
 @pytest.mark.parametrize(("right", "reward"), [(True, 1.0), (False, -0.1)])

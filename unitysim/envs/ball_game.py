@@ -34,6 +34,11 @@ class BallGame(ArenaEnv):
     goals: ClassVar[tuple[bool, bool]] = (True, True)  # is there a goal at -x, at +x
     max_env_steps: ClassVar[int] = 5000  # MaxEnvironmentSteps of the field's controller
     agent_radius: ClassVar[float] = 0.5
+    cast_radius: ClassVar[float] = 0.0  # the rays' sphere cast (0: thin rays)
+    ball_per_scale: ClassVar[float] = 0.05  # the ball's radius per unit of ``ball_scale``
+    start_spread: ClassVar[tuple[float, float]] = (0.5, 0.5)  # uniform +- about ``start``
+    heading_spread: ClassVar[float] = 0.3  # radians, uniform +-
+    ball_spread: ClassVar[float] = 1.0  # the ball starts uniform within +- this of the centre
     speed: ClassVar[float] = 5.0
     turn_speed: ClassVar[float] = 3.0
     team_of: ClassVar[tuple[int, ...]]  # team per behavior
@@ -75,22 +80,29 @@ class BallGame(ArenaEnv):
         fields[self.field[which]] = True
         rows = fields[self.field]
         k, f = int(rows.sum()), int(fields.sum())
-        self.ball_radius = 0.05 * self.params.get("ball_scale", 7.5)
+        self.ball_radius = self.ball_per_scale * self.params.get("ball_scale", 7.5)
         self.friction = 0.35 * self.params.get("gravity", 9.81)
         self.ball_touch = self.params.get("ball_touch", 0.0)
         self.ball_limit = np.asarray(self.half) - self.ball_radius
         start = np.asarray(self.start)[self.local[rows]]
-        self.pos[rows] = start[:, :2] + self.rng.uniform(-0.5, 0.5, size=(k, 2))
-        self.heading[rows] = start[:, 2] + self.rng.uniform(-0.3, 0.3, size=k)
-        self.motion[rows] = 0.0
-        self.turn[rows] = 0.0
-        self.ball[fields] = self.rng.uniform(-1.0, 1.0, size=(f, 2))
+        spread = np.asarray(self.start_spread)
+        self.pos[rows] = start[:, :2] + self.rng.uniform(-spread, spread, size=(k, 2))
+        h = self.heading_spread
+        self.heading[rows] = start[:, 2] + self.rng.uniform(-h, h, size=k)
+        self._still(rows)
+        b = self.ball_spread
+        self.ball[fields] = self.rng.uniform(-b, b, size=(f, 2))
         self.ball_vel[fields] = 0.0
         self.field_steps[fields] = 0
         self.episode_steps[rows] = 0
         for stacks in self.stacks:
             for stack in stacks:
                 stack.clear(rows)
+
+    def _still(self, rows: np.ndarray) -> None:
+        """At a field's reset: its agents at rest, no command stored."""
+        self.motion[rows] = 0.0
+        self.turn[rows] = 0.0
 
     def _act(self, rows: np.ndarray, actions: Actions) -> None:
         c = AXIS[np.clip(actions.discrete, 0, 2)]  # forward, right, turn left
@@ -99,15 +111,25 @@ class BallGame(ArenaEnv):
         )
 
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
-        drive(self.pos, self.heading, self.motion, self.turn, self.low, self.high)
+        self._move()
         scored = self._roll_ball()
         self._rewards(scored)
         ended = (scored != 0) | (self.field_steps >= self.max_env_steps)
         return ended[self.field], (ended & (scored == 0))[self.field]
 
+    def _move(self) -> None:
+        """The agents' part of one physics step."""
+        drive(self.pos, self.heading, self.motion, self.turn, self.low, self.high)
+
     def _roll_ball(self) -> np.ndarray:
         """Kicks, rolling and bounces of one step; returns +1 / -1 per field for a goal
         at +x / -x, else 0."""
+        self._kick()
+        self._roll()
+        return self._ends()
+
+    def _kick(self) -> None:
+        """Touching the ball sends it away from the agent, harder when moving forward."""
         per_field = len(self.layout)
         pos = self.pos.reshape(self.fields, per_field, 2)
         rel = self.ball[:, None, :] - pos
@@ -123,9 +145,15 @@ class BallGame(ArenaEnv):
             self.ball[kicked] = pos[kicked, kicker] + away * reach
             self.ball_vel[kicked] = away * power[:, None]
             self.reward[row] += 0.2 * self.ball_touch
+
+    def _roll(self) -> None:
+        """The ball rolls on, slowed by a constant friction."""
         speed = np.sqrt(np.einsum("fk,fk->f", self.ball_vel, self.ball_vel))
         self.ball_vel *= np.maximum(0.0, 1.0 - self.friction * DT / (speed + 1e-9))[:, None]
         self.ball += self.ball_vel * DT
+
+    def _ends(self) -> np.ndarray:
+        """Goals, and bounces off the sides and the ends outside the goals."""
         out = np.abs(self.ball) > self.ball_limit
         if not out.any():
             return self._no_goal
@@ -157,6 +185,8 @@ class BallGame(ArenaEnv):
         """One cast per distinct set of ray sensors (SoccerTwos: one for both teams)."""
         per_field = len(self.layout)
         self.half_sizes[0] = self.ball_radius
+        reach = np.asarray(self.half) - self.cast_radius  # where a sphere cast meets a side
+        half = (float(reach[0]), float(reach[1]))
         for sensors, uses in self._sensor_sets:
             sel = rows[uses[self.beh[rows]]]
             if len(sel) == 0:
@@ -170,9 +200,9 @@ class BallGame(ArenaEnv):
                 sensors,
                 self.pos[sel],
                 self.heading[sel],
-                centers - self.half_sizes,
-                centers + self.half_sizes,
-                self.half,
+                centers - (self.half_sizes + self.cast_radius),
+                centers + (self.half_sizes + self.cast_radius),
+                half,
                 self.tags[self.local[sel]],
             )
             for frame, full in zip(frames, self.frames[sensors], strict=True):
