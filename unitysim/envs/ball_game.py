@@ -130,21 +130,28 @@ class BallGame(ArenaEnv):
 
     def _kick(self) -> None:
         """Touching the ball sends it away from the agent, harder when moving forward."""
+        _, kicked, row, away = self._touches()
+        if len(kicked) == 0:
+            return
+        power = np.where(self.motion[row].real > 0, 8.0, 2.0)  # moving forward: a kick
+        self.ball_vel[kicked] = away * power[:, None]
+        self.reward[row] += 0.2 * self.ball_touch
+
+    def _touches(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Which agents overlap their pitch's ball (fields, agents of a field); the pitches
+        where one does, the row of the first, and the unit vector from it to the ball,
+        which is put back out to where the two touch."""
         per_field = len(self.layout)
         pos = self.pos.reshape(self.fields, per_field, 2)
         rel = self.ball[:, None, :] - pos
         dist2 = np.einsum("fpk,fpk->fp", rel, rel)
         reach = self.agent_radius + self.ball_radius
         touch = dist2 < reach * reach
-        if touch.any():
-            kicked = np.flatnonzero(touch.any(axis=1))
-            kicker = touch[kicked].argmax(axis=1)
-            row = kicked * per_field + kicker
-            away = rel[kicked, kicker] / np.sqrt(np.maximum(dist2[kicked, kicker], 1e-12))[:, None]
-            power = np.where(self.motion[row].real > 0, 8.0, 2.0)  # moving forward: a kick
-            self.ball[kicked] = pos[kicked, kicker] + away * reach
-            self.ball_vel[kicked] = away * power[:, None]
-            self.reward[row] += 0.2 * self.ball_touch
+        kicked = np.flatnonzero(touch.any(axis=1))
+        kicker = touch[kicked].argmax(axis=1)
+        away = rel[kicked, kicker] / np.sqrt(np.maximum(dist2[kicked, kicker], 1e-12))[:, None]
+        self.ball[kicked] = pos[kicked, kicker] + away * reach
+        return touch, kicked, kicked * per_field + kicker, away
 
     def _roll(self) -> None:
         """The ball rolls on, slowed by a constant friction."""

@@ -120,20 +120,11 @@ class SoccerTwos(BallGame):
         """A collision of the ball with the first agent it overlaps on each pitch: it
         bounces off (restitution 0.8, the masses' share each), and an agent whose forward
         action is on kicks it when the contact begins (``OnCollisionEnter``)."""
-        per_field = len(self.layout)
-        pos = self.pos.reshape(self.fields, per_field, 2)
-        rel = self.ball[:, None, :] - pos
-        dist2 = np.einsum("fpk,fpk->fp", rel, rel)
-        reach = self.agent_radius + self.ball_radius
-        touch = dist2 < reach * reach
+        touch, kicked, row, normal = self._touches()
         began = touch.ravel() & ~self.touching
-        self.touching = touch.ravel().copy()
-        if not touch.any():
+        self.touching = touch.ravel()
+        if len(kicked) == 0:
             return
-        kicked = np.flatnonzero(touch.any(axis=1))
-        kicker = touch[kicked].argmax(axis=1)
-        row = kicked * per_field + kicker
-        normal = rel[kicked, kicker] / np.sqrt(np.maximum(dist2[kicked, kicker], 1e-12))[:, None]
         closing = np.einsum("fk,fk->f", self.ball_vel[kicked] - self.velocity[row], normal)
         impulse = np.minimum(closing, 0.0) * (1.0 + BOUNCE) / (AGENT_MASS + BALL_MASS)
         self.ball_vel[kicked] -= (impulse * AGENT_MASS)[:, None] * normal
@@ -141,7 +132,6 @@ class SoccerTwos(BallGame):
         kick = began[row] & (self.command[row, 0] > 0)
         self.ball_vel[kicked] += (kick * KICK)[:, None] * normal
         self.reward[row] += 0.2 * self.ball_touch * began[row]
-        self.ball[kicked] = pos[kicked, kicker] + normal * reach
 
     def _roll(self) -> None:
         self.ball_vel /= 1.0 + BALL_DRAG * DT
