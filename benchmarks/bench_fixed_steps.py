@@ -41,7 +41,15 @@ from typing import Any
 from bench_learning import scalars  # benchmarks/bench_learning.py
 from bench_vs_mlagents import build_player, with_demo
 from machine import machine  # benchmarks/machine.py
-from trainer_runs import ANCHOR_DIR, MEASURES, Run, anchor_command, our_command, run_command
+from trainer_runs import (
+    ANCHOR_DIR,
+    MEASURES,
+    Run,
+    anchor_command,
+    our_command,
+    run_command,
+    stop_runs_on_sigterm,
+)
 
 from batches.contracts import base_name
 from unitysim.envs import load
@@ -183,6 +191,7 @@ def medians(runs: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, A
 
 
 def main() -> int:
+    stop_runs_on_sigterm()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", default="ppo_Pyramids.yaml", help="in mlagents_configs/")
     parser.add_argument("--env", default="Pyramids", help="the unitysim environment")

@@ -71,7 +71,9 @@ def freeze_acting_normalizer() -> None:
 def main() -> int:
     from bench_vs_mlagents import CONFIGS, build_player  # our venv from here on
     from machine import machine
-    from trainer_runs import ANCHOR_DIR, Run, anchor_command, run_command
+    from trainer_runs import ANCHOR_DIR, Run, anchor_command, run_command, stop_runs_on_sigterm
+
+    stop_runs_on_sigterm()
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

@@ -34,7 +34,14 @@ from pathlib import Path
 
 import yaml
 from machine import machine  # benchmarks/machine.py
-from trainer_runs import ANCHOR_DIR, Run, anchor_command, our_command, run_command
+from trainer_runs import (
+    ANCHOR_DIR,
+    Run,
+    anchor_command,
+    our_command,
+    run_command,
+    stop_runs_on_sigterm,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = Path(__file__).resolve().parent / "mlagents_configs"
@@ -277,6 +284,7 @@ def medians(case: Case, rounds: list[list[Run]]) -> dict:
 
 
 def main() -> int:
+    stop_runs_on_sigterm()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", nargs="*", default=[], help="case names (e.g. 3DBall-PPO)")
     parser.add_argument("--seeds", type=int, default=3, help="rounds, one seed each (>= 2)")

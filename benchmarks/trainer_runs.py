@@ -4,6 +4,7 @@ process it started found by an environment tag and ended."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -140,6 +141,26 @@ def tagged(tag: str) -> list[psutil.Process]:
     return found
 
 
+_LIVE: dict[int, str] = {}  # process group -> tag, of every run in progress
+
+
+def stop_runs_on_sigterm() -> None:
+    """Make a SIGTERM to the benchmark stop the runs it started, then exit: each run is in a
+    session of its own, so nothing else stops them (an mlagents-learn run in a thread went on
+    alone, holding its ports). Call from the main thread."""
+
+    def stop(signum: int, _frame: object) -> None:
+        for group, tag in list(_LIVE.items()):
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(group, signal.SIGKILL)
+            for leftover in tagged(tag):
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    leftover.kill()
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, stop)
+
+
 def run_command(
     command: list[str],
     env: dict[str, str],
@@ -168,6 +189,7 @@ def run_command(
         env={**os.environ, **env, TAG: tag, "PYTHONUNBUFFERED": "1"},
         cwd=cwd,
     )
+    _LIVE[process.pid] = tag
     done = threading.Event()
 
     def read() -> None:
@@ -213,3 +235,4 @@ def run_command(
         run.leftovers = len(left)
         for leftover in left:
             leftover.kill()
+        _LIVE.pop(process.pid, None)
