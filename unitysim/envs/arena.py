@@ -88,6 +88,16 @@ def overlaps(pos: np.ndarray, radius: float, lo: np.ndarray, hi: np.ndarray) -> 
     return inside[..., 0] & inside[..., 1]
 
 
+def stop_at_edge(
+    pos: np.ndarray, velocity: np.ndarray, edge: tuple[np.ndarray, np.ndarray]
+) -> None:
+    """Bodies (``pos``, ``velocity`` (n, 2), in place) past the field's ``edge``
+    (:func:`limits`) are put back on it and lose their velocity across it."""
+    low, high = edge
+    velocity[(pos < low) | (pos > high)] = 0.0
+    np.clip(pos, low, high, out=pos)
+
+
 def collide(
     pos: np.ndarray,
     velocity: np.ndarray,
@@ -101,10 +111,7 @@ def collide(
     ``halves`` (m, 2) or (n, m, 2)) are put back out along the axis they went in least and
     lose their velocity along it: they slide along the side, as a rigid body along a static
     collider."""
-    low, high = edge
-    outside = (pos < low) | (pos > high)
-    velocity[outside] = 0.0
-    np.clip(pos, low, high, out=pos)
+    stop_at_edge(pos, velocity, edge)
     gap = np.abs(pos[:, None, :] - centres) - (halves + radius)  # (n, m, 2)
     inside = (gap < 0).all(axis=2)
     if not inside.any():

@@ -72,6 +72,8 @@ class BallGame(ArenaEnv):
         # half sizes of the ray objects: ball, two goals, the field's agents
         self.half_sizes = np.full((3 + len(self.layout), 2), self.agent_radius)
         self.half_sizes[1:3] = (0.15, self.goal_half_width)
+        # where a sphere cast's centre meets a side
+        self._cast_half = (self.half[0] - self.cast_radius, self.half[1] - self.cast_radius)
 
     def _begin(self, which: np.ndarray) -> None:
         """Field reset (``ResetScene``): every agent of the field to its start, ball near
@@ -192,8 +194,6 @@ class BallGame(ArenaEnv):
         """One cast per distinct set of ray sensors (SoccerTwos: one for both teams)."""
         per_field = len(self.layout)
         self.half_sizes[0] = self.ball_radius
-        reach = np.asarray(self.half) - self.cast_radius  # where a sphere cast meets a side
-        half = (float(reach[0]), float(reach[1]))
         for sensors, uses in self._sensor_sets:
             sel = rows[uses[self.beh[rows]]]
             if len(sel) == 0:
@@ -209,7 +209,7 @@ class BallGame(ArenaEnv):
                 self.heading[sel],
                 centers - (self.half_sizes + self.cast_radius),
                 centers + (self.half_sizes + self.cast_radius),
-                half,
+                self._cast_half,
                 self.tags[self.local[sel]],
             )
             for frame, full in zip(frames, self.frames[sensors], strict=True):

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import AXIS, DT
+from unitysim.envs.arena import AXIS, DT, stop_at_edge
 from unitysim.envs.ball_game import BallGame
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
 from unitysim.envs.perception import Rays
@@ -112,9 +112,7 @@ class SoccerTwos(BallGame):
         self.velocity[:, 1] += PUSH * push * np.where(across, -cos, sin)
         self.velocity /= 1.0 + AGENT_DRAG * DT
         self.pos += self.velocity * DT
-        stopped = (self.pos < self.low) | (self.pos > self.high)
-        self.velocity[stopped] = 0.0
-        np.clip(self.pos, self.low, self.high, out=self.pos)
+        stop_at_edge(self.pos, self.velocity, (self.low, self.high))
 
     def _kick(self) -> None:
         """A collision of the ball with the first agent it overlaps on each pitch: it
