@@ -115,6 +115,10 @@ def test_an_existing_tune_run_is_not_overwritten_without_force(tmp_path):
         planned(tmp_path, {LR: {"choice": [1e-3]}})
 
 
+PBT_SAFETY_STOP_S = 600
+
+
+@pytest.mark.timeout(PBT_SAFETY_STOP_S + 90)  # pytest's 300 s fired first on a busy CI machine
 def test_pbt_with_four_trials_on_two_cores(tmp_path):
     """Steps: 4 trials x 12,000; PBT perturbs at every report and the worse half exploits.
     A report comes at the first turn of the run's loop past 500 steps, about 1,000 steps
@@ -142,7 +146,7 @@ def test_pbt_with_four_trials_on_two_cores(tmp_path):
         command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
     try:
-        deadline = time.monotonic() + 600
+        deadline = time.monotonic() + PBT_SAFETY_STOP_S
         while process.poll() is None and time.monotonic() < deadline:
             most_at_once = max(most_at_once, len(ports.leases()))
             time.sleep(0.5)
