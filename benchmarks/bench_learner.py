@@ -181,6 +181,9 @@ def main() -> None:
         for case, encoder, device, mixed in variants:
             name = f"{case} | {encoder} | {device}{' bf16' if mixed else ''}"
             compute = Compute.of(device, mixed)
+            if mixed and not compute.mixed_precision:  # bfloat16 emulated: not measured
+                print(f"{name}: skipped, {compute.note}", flush=True)
+                continue
             profile = args.gpu_busy and round_ == args.rounds - 1
             result = measure(
                 case, encoder if encoder != "-" else "simple", compute, args.updates, profile

@@ -1,6 +1,7 @@
 """What a behavior's settings mean for it, said once as the run meets it: the defaults
 when the config does not name it (in mlagents-learn's words), blank cameras when the build
-runs without graphics, and group rewards that its trainer does not train on."""
+runs without graphics, and group rewards that its trainer does not train on; and the
+learner's own notes (mixed precision it cannot use), said once in the driver's log."""
 
 from __future__ import annotations
 
@@ -24,6 +25,15 @@ class BehaviorNotes:
     def __init__(self, config: RunConfig, no_graphics: bool) -> None:
         self.config, self.no_graphics = config, no_graphics
         self.seen, self.named = set[str](), set[str]()  # behaviors, and their config names
+        self.said = set[str]()  # the learner's notes
+
+    def learner(self, notes: list[str]) -> None:
+        """The learner's notes (``CentralLearner.progress``), each said once: a restored
+        learner repeats them."""
+        for note in notes:
+            if note not in self.said:
+                self.said.add(note)
+                log.warning("%s", note)
 
     def _unconfigured(self, name: str) -> None:
         """As mlagents-learn: without a file, the defaults and a warning; with one, its

@@ -188,7 +188,9 @@ class TrainOptions:
         aliases=("--torch-device",),
     )
     mixed_precision: bool = option(
-        False, "the learner runs its hidden layers in bfloat16 autocast (heads in float32)"
+        False,
+        "the learner runs its hidden layers in bfloat16 autocast (heads in float32); float32 "
+        "with a warning where bfloat16 is emulated (a CPU without AVX-512 or AMX)",
     )
     deterministic: bool = option(
         False,

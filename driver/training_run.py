@@ -156,6 +156,7 @@ class TrainingRun:
             learner = self.keeper.learner
             self.progress = ray.get(learner.progress.remote())
             self.notes.report(metrics.specs)
+            self.notes.learner(self.progress["notes"])
             if set(metrics.specs) - self._met:  # new behaviors: self-play teams join now
                 self._met |= set(metrics.specs)
                 learner.meet.remote(dict(metrics.specs))

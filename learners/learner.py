@@ -294,14 +294,22 @@ class CentralLearner:
     # --- for the driver -----------------------------------------------------------------
 
     def progress(self) -> dict[str, Any]:
-        """Steps per behavior, whether all are done, and learner throughput."""
+        """Steps per behavior, whether all are done, learner throughput, and notes for the
+        user (``Compute.note``: its process's log does not reach them under Ray)."""
         # copies: as a Ray actor (learner_actor) this runs while ``submit`` may
         steps = {name: s.steps for name, s in list(self.behaviors.items())}
         done = all_done(steps, self.config, self.max_steps)
         stats = replace(self.stats)
         if (since := self._updating_since) is not None:  # the update under way counts so far
             stats.update_seconds += time.perf_counter() - since
-        return {"version": self.version, "steps": steps, "done": done, "stats": stats}
+        notes = [self.compute.note] if self.compute.note else []
+        return {
+            "version": self.version,
+            "steps": steps,
+            "done": done,
+            "stats": stats,
+            "notes": notes,
+        }
 
     def drain_reports(self) -> list[tuple[str, int, dict[str, float]]]:
         """(behavior, step, metrics) of each update since the last call (for TensorBoard)."""

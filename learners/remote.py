@@ -172,7 +172,13 @@ class LearnerHost:
         """Steps per behavior, those not yet handed over included."""
         if self._learner is None:  # never done: the learner has yet to train on them
             steps = dict(self._early_steps)
-            return {"version": 0, "steps": steps, "done": False, "stats": LearnerStats()}
+            return {
+                "version": 0,
+                "steps": steps,
+                "done": False,
+                "stats": LearnerStats(),
+                "notes": [],
+            }
         progress = self._learner.progress()
         for behavior, steps in list(self._early_steps.items()):
             progress["steps"][behavior] = progress["steps"].get(behavior, 0) + steps

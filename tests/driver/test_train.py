@@ -302,3 +302,29 @@ def test_cuda_on_a_cluster_without_a_gpu_is_one_line_before_any_worker(ray_sessi
     assert not (tmp_path / "run" / "unity-logs").exists() or not any(
         (tmp_path / "run" / "unity-logs").iterdir()
     )
+
+
+def test_mixed_precision_the_learner_cannot_use_is_said_in_the_driver(
+    ray_session, tmp_path, caplog
+):
+    """The learner runs in a Ray actor whose log does not reach the user: where its CPU
+    emulates bfloat16 it computes in float32, and the driver's log says so once; where
+    bfloat16 is native, nothing is said and the run trains in it."""
+    from learners.devices import bfloat16_slow
+
+    why = bfloat16_slow(torch.device("cpu"))
+    options = TrainOptions(
+        env="unitysim:Basic", results_dir=str(tmp_path), run_id="mixed", max_steps=1_000,
+        mixed_precision=True, progress=False, device="cpu",
+    )  # fmt: skip
+    with caplog.at_level("WARNING", logger="driver.behavior_notes"):
+        result = train(options)
+    assert sum(result.steps.values()) >= 1_000
+    said = [r.getMessage() for r in caplog.records if "--mixed-precision" in r.getMessage()]
+    if why is None:
+        assert said == []
+    else:
+        assert said == [
+            f"--mixed-precision: {why}, where bfloat16 runs slower than float32; the learner "
+            "computes in float32"
+        ]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
 from mlagents_envs.base_env import ObservationType as Obs
@@ -9,6 +11,7 @@ from tensordict import TensorDict
 
 from batches import keys
 from batches.specs import log_prob_size, spec_to_dict, step_spec
+from learners.devices import Compute
 
 # the devices a learner test can run on here: the CPU, and CUDA on a machine that has it
 DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
@@ -57,3 +60,9 @@ def segment(
     batch.set_non_tensor(keys.BEHAVIOR, behavior)
     batch.set_non_tensor(keys.SPEC, spec_to_dict(spec))
     return batch
+
+
+def compute_of(device: str, mixed_precision: bool) -> Compute:
+    """``Compute.of``, with bfloat16 kept where the learner would fall back to float32 for
+    speed (a CPU without bfloat16 instructions): its path is tested on every machine."""
+    return replace(Compute.of(device), mixed_precision=mixed_precision)

@@ -14,10 +14,11 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec
 
 from batches import keys
+from learners import devices
 from learners.config import ConfigError, parse_config
 from learners.devices import Compute, DeviceError, check_device, learner_device, to_cpu
 from learners.learner import CentralLearner
-from tests.learners.fakes import DEVICES, IMAGE, VECTOR, segment
+from tests.learners.fakes import DEVICES, IMAGE, VECTOR, compute_of, segment
 
 
 def test_device_names_are_checked_in_one_line():
@@ -45,6 +46,33 @@ def test_the_learner_process_resolves_its_device():
     assert Compute.of("auto").device == ("cuda" if gpus else "cpu")
     with pytest.raises(DeviceError, match=f"sees {gpus} CUDA device"):
         Compute.of(f"cuda:{gpus}")  # one past the last
+
+
+def test_mixed_precision_falls_back_to_float32_with_a_note_where_bfloat16_is_emulated(
+    monkeypatch,
+):
+    """Emulated bfloat16 made an update 13 times slower on an AVX2 CPU: the learner
+    computes in float32 and says why in one line; where bfloat16 is native it keeps it."""
+    monkeypatch.setattr(devices, "bfloat16_slow", lambda device: f"{device} emulates it")
+    compute = Compute.of("cpu", mixed_precision=True)
+    assert (compute.device, compute.mixed_precision) == ("cpu", False)
+    assert compute.note is not None and "\n" not in compute.note
+    assert (
+        compute.note.startswith("--mixed-precision: cpu emulates it") and "float32" in compute.note
+    )
+    learner = CentralLearner(parse_config({}), compute=compute)
+    assert learner.progress()["notes"] == [compute.note]  # how the driver hears of it
+    assert Compute.of("cpu") == Compute("cpu")  # not asked: nothing to say
+    monkeypatch.setattr(devices, "bfloat16_slow", lambda device: None)
+    assert Compute.of("cpu", mixed_precision=True) == Compute("cpu", True)
+    assert CentralLearner(parse_config({})).progress()["notes"] == []
+
+
+def test_the_bfloat16_probe_answers_in_one_line():
+    why = devices.bfloat16_slow(torch.device("cpu"))
+    native = torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    assert (why is None) == native, why  # torch's own test of oneDNN's bfloat16
+    assert why is None or ("\n" not in why and torch.backends.cpu.get_cpu_capability() in why)
 
 
 def test_torch_settings_device_is_mlagents_key_and_checked():
@@ -137,7 +165,7 @@ def test_mixed_precision_runs_the_hidden_layers_in_bfloat16_and_the_heads_in_flo
     config = parse_config(
         {"behaviors": {"B": {"hyperparameters": {"buffer_size": 16, "batch_size": 16}}}}
     )
-    learner = CentralLearner(config, compute=Compute.of(device, mixed_precision=mixed))
+    learner = CentralLearner(config, compute=compute_of(device, mixed))
     learner.submit([segment(spec, 1, 1, behavior="B?team=0")])
     network = learner.behaviors["B?team=0"].network
     seen: dict[str, set[torch.dtype]] = {"conv": set(), "trunk": set(), "critic": set()}
@@ -187,7 +215,7 @@ def test_mixed_precision_updates_every_trainer_and_encoder(trainer, actions, enc
     network = {"vis_encode_type": encoder, "hidden_units": 16}
     behavior = {"trainer_type": trainer, "hyperparameters": hyper, "network_settings": network}
     config = parse_config({"behaviors": {"B": behavior}})
-    learner = CentralLearner(config, compute=Compute.of(device, mixed_precision=True))
+    learner = CentralLearner(config, compute=compute_of(device, True))
     learner.submit([segment(spec, 2, 9, behavior="B?team=0", seed=2)])
     reports = learner.drain_reports()
     assert reports, "no update ran"

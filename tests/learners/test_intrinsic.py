@@ -18,7 +18,7 @@ from learners.policies import ActorCritic
 from learners.ppo import PPO
 from learners.settings import Hyperparameters, NetworkSettings, RewardSignalSettings
 from learners.signal_base import Transitions
-from tests.learners.fakes import DEVICES, segment, vector_spec
+from tests.learners.fakes import DEVICES, compute_of, segment, vector_spec
 
 SMALL = NetworkSettings(hidden_units=32, num_layers=2)
 
@@ -246,7 +246,7 @@ def test_every_signal_trains_under_mixed_precision(device):
         RewardSignalSettings("rnd", network_settings=SMALL),
         RewardSignalSettings("gail", network_settings=SMALL, demo_path="e.demo"),
     )
-    ppo = ppo_with(signals, experts, Compute.of(device, mixed_precision=True))
+    ppo = ppo_with(signals, experts, compute_of(device, True))
     before = [[p.detach().clone() for p in item.parameters()] for item in ppo.signals.items]
     ppo.add(segment(vector_spec(4, branches=(2,)), rows=2, steps=8), torch.zeros(16).long())
     report = ppo.update(progress=0.1)

@@ -14,7 +14,7 @@ from mlagents_envs.base_env import DecisionSteps, TerminalSteps
 
 from batches import keys
 from learners.config import defaults
-from learners.devices import Compute, to_cpu
+from learners.devices import to_cpu
 from learners.group_critic import GroupCritic
 from learners.poca import POCA
 from learners.policies import ActorCritic
@@ -22,7 +22,7 @@ from learners.settings import NetworkSettings
 from learners.trajectory_store import TrajectoryStore
 from rollout.decisions import Decisions
 from rollout.segments import SegmentBuilder
-from tests.learners.fakes import DEVICES, vector_spec
+from tests.learners.fakes import DEVICES, compute_of, vector_spec
 
 SPEC = vector_spec(3, branches=(2,))
 NET = NetworkSettings(hidden_units=16, num_layers=1)
@@ -254,7 +254,7 @@ def test_mixed_precision_runs_the_group_critic_in_bfloat16_and_its_head_in_float
     precision of their float32 form."""
     torch.manual_seed(0)
     network = ActorCritic(SPEC, NET)
-    compute = Compute.of(device, mixed_precision=True)
+    compute = compute_of(device, True)
     compute.place(network)
     mixed = POCA(network, settings(buffer_size=32, batch_size=16), compute)
     critic = mixed.critic
