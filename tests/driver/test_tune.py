@@ -120,18 +120,19 @@ PBT_SAFETY_STOP_S = 600
 
 @pytest.mark.timeout(PBT_SAFETY_STOP_S + 90)  # pytest's 300 s fired first on a busy CI machine
 def test_pbt_with_four_trials_on_two_cores(tmp_path):
-    """Steps: 4 trials x 12,000; PBT perturbs at every report and the worse half exploits.
+    """Steps: 4 trials x 8,000; PBT perturbs at every report and the worse half exploits.
     A report comes at the first turn of the run's loop past 500 steps, about 1,000 steps
-    here, so each trial gets 7-9 rounds. Ray's asynchronous PBT exploits only where a
+    here, so each trial gets 5-8 rounds. Ray's asynchronous PBT exploits only where a
     better trial saved a checkpoint at an earlier perturbation of its own: at 4,000 steps
-    (3-4 rounds) a CI run had none; at 12,000 two runs had 6 and 7."""
+    (3-4 rounds) a CI run had none; at 12,000 runs had 6, 7 and 13, but one took more
+    than 600 s on a slower 2-core machine beside the rest of the suite."""
     write(tmp_path / "config.yaml", CONFIG)
     write(tmp_path / "search.yaml", {LR: {"loguniform": [1e-4, 3e-3]}})
     registry = tmp_path / "ports"
     marker = uuid.uuid4().hex
     command = [
         sys.executable, "-m", "driver.cli", "tune", "config.yaml", "--search", "search.yaml",
-        "--trials", "4", "--workers", "1", "--cpus", "2", "--max-steps", "12000",
+        "--trials", "4", "--workers", "1", "--cpus", "2", "--max-steps", "8000",
         "--perturbation-interval", "500", "--quantile-fraction", "0.5",
         "--run-id", "pbt", "--seed", "3",
     ]  # fmt: skip
@@ -164,7 +165,7 @@ def test_pbt_with_four_trials_on_two_cores(tmp_path):
     assert len(rows) == 4
     exploited = 0
     for row in rows:
-        assert int(row["steps"]) >= 12000 and row["error"] == ""
+        assert int(row["steps"]) >= 8000 and row["error"] == ""
         run_dir = Path(row["run_dir"])
         pieces = sorted((run_dir / "pieces").glob("*.json"))
         assert pieces, f"{run_dir}: no stretch ended as a run ends"
