@@ -1,6 +1,6 @@
 """The learner's torch threads: ``unity-rollout train`` to a step budget with
-``--learner-threads 1`` (the default) against ``--learner-threads N`` (default N: the
-machine's cores, torch's own choice), interleaved, several rounds; reported per run: agent
+``--learner-threads 1`` against ``--learner-threads N`` (default N: the machine's cores,
+the default of an on-policy run), interleaved, several rounds; reported per run: agent
 steps per second from the run's ``summary.json``; per round: N threads / one thread.
 
     .venv/bin/python benchmarks/bench_learner_threads.py --rounds 2 \\

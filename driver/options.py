@@ -174,10 +174,10 @@ class TrainOptions:
         "learner (0 where it runs on a head without CPUs for Ray, as on KubeRay)",
         check=at_least(0),
     )
-    learner_threads: int = option(
-        1,
-        "torch threads of the learner (mlagents-learn: one per core); on 2 cores more "
-        "gave nothing for PPO or POCA (benchmarks/bench_learner_threads.py)",
+    learner_threads: int | None = option(
+        None,
+        "torch threads of the learner; default: every core of its node where the workers "
+        "wait through its updates (PPO, POCA), else 1; OMP_NUM_THREADS where set",
         check=at_least(1),
     )
     device: str | None = option(

@@ -19,6 +19,7 @@ its opponent snapshot.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, replace
@@ -104,9 +105,10 @@ class CentralLearner:
         inference: bool = False,
         experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
-        """``experts``: the demonstrations of ``behavioral_cloning``, by ``demo_path``."""
+        """``experts``: the demonstrations of ``behavioral_cloning``, by ``demo_path``;
+        ``torch_threads`` 0: every core this process may run on (None: torch's choice)."""
         if torch_threads is not None:  # the Ray actor shares its node with Unity workers
-            torch.set_num_threads(torch_threads)
+            torch.set_num_threads(torch_threads or len(os.sched_getaffinity(0)))
         self.compute = compute or Compute()
         self.config = config
         self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)
