@@ -108,7 +108,10 @@ def our_command(
     seconds: float,
 ) -> list[str]:  # fmt: skip
     """``unity-rollout train`` as the benchmarks run it (``prefix``: up to ``train``): 2
-    workers, as mlagents-learn's 2 instances, stopped after ``seconds`` at the latest."""
+    workers, as mlagents-learn's 2 instances, stopped after ``seconds`` at the latest; one
+    learner thread, as every run beside mlagents-learn was measured before the default
+    took every core (on 2 cores beside it, 2 threads slowed ours' SoccerTwos updates from
+    about 100 s to 155; a later ``--learner-threads`` in the command overrides it)."""
     return [
         *prefix,
         "--env",
@@ -127,6 +130,8 @@ def our_command(
         "--no-progress",
         "--max-seconds",
         str(seconds),
+        "--learner-threads",
+        "1",
     ]
 
 
