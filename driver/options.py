@@ -176,7 +176,7 @@ class TrainOptions:
     )
     learner_threads: int | None = option(
         None,
-        "torch threads of the learner; default: every core of its node where the workers "
+        "torch threads of the learner; default: every core it may use where the workers "
         "wait through its updates (PPO, POCA), else 1; OMP_NUM_THREADS where set",
         check=at_least(1),
     )

@@ -71,7 +71,7 @@ def choose_device(options: TrainOptions, config: RunConfig) -> str:
 
 def learner_threads(options: TrainOptions, config: RunConfig) -> int:
     """The learner's torch threads: ``--learner-threads``, else OMP_NUM_THREADS where the
-    driver has it; else 0 (every core of the learner's node) where the workers wait
+    driver has it; else 0 (every core the learner may keep busy) where the workers wait
     through each update (on-policy trainers, nothing collected ahead), else 1 (workers
     collect beside it). POCA's 512-wide SoccerTwos config trained 1.5 times as fast with
     2 threads as with 1 on 2 cores; 3DBall's and DungeonEscape's small networks the same."""

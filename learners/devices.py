@@ -17,6 +17,8 @@ computes in float32 there and its ``note`` says why (the driver prints it).
 from __future__ import annotations
 
 import contextlib
+import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -158,6 +160,28 @@ def to_cpu(tree: Any) -> Any:
     if isinstance(tree, list | tuple):
         return type(tree)(to_cpu(value) for value in tree)
     return tree
+
+
+def usable_cores(cgroup: Path = Path("/sys/fs/cgroup")) -> int:
+    """The cores this process may keep busy: its CPU affinity, within the container's CPU
+    quota (cgroup v2 ``cpu.max``, or v1 ``cpu.cfs_quota_us`` over its period), as
+    mlagents-learn's ``cpu_utils`` counts them. A pod limited to 2 CPUs on a 64-core node
+    sees 64 cores in its affinity."""
+    cores = len(os.sched_getaffinity(0))
+    for quota_file, period_file in (
+        (cgroup / "cpu.max", None),
+        (cgroup / "cpu/cpu.cfs_quota_us", cgroup / "cpu/cpu.cfs_period_us"),
+    ):
+        try:
+            fields = quota_file.read_text().split()
+            if period_file is not None:
+                fields.append(period_file.read_text().strip())
+            quota, period = int(fields[0]), int(fields[1])
+        except (OSError, ValueError, IndexError):  # no such file, or "max": no quota
+            continue
+        if quota > 0 and period > 0:
+            return max(1, min(cores, math.ceil(quota / period)))
+    return cores
 
 
 def free_memory(device: torch.device) -> int | None:

@@ -19,7 +19,6 @@ its opponent snapshot.
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, replace
@@ -35,7 +34,7 @@ from batches.specs import spec_from_dict
 from learners import checkpoint
 from learners.cloning import BehavioralCloning
 from learners.counters import LearnerStats, all_done, budget, demand
-from learners.devices import Compute, to_cpu
+from learners.devices import Compute, to_cpu, usable_cores
 from learners.factory import policy_factory
 from learners.policies import ActorCritic, numpy_state
 from learners.self_play import SelfPlay, as_brain, learning_steps, team_of
@@ -106,9 +105,10 @@ class CentralLearner:
         experts: Mapping[str, ExpertSteps] | None = None,
     ) -> None:
         """``experts``: the demonstrations of ``behavioral_cloning``, by ``demo_path``;
-        ``torch_threads`` 0: every core this process may run on (None: torch's choice)."""
+        ``torch_threads`` 0: every core this process may keep busy (``usable_cores``; None:
+        torch's choice)."""
         if torch_threads is not None:  # the Ray actor shares its node with Unity workers
-            torch.set_num_threads(torch_threads or len(os.sched_getaffinity(0)))
+            torch.set_num_threads(torch_threads or usable_cores())
         self.compute = compute or Compute()
         self.config = config
         self.max_steps = max_steps  # stop earlier than max_steps (CLI --max-steps)

@@ -186,12 +186,13 @@ def test_a_learner_given_zero_threads_takes_every_core_it_may_run_on():
 
     import torch
 
+    from learners.devices import usable_cores
     from learners.learner import CentralLearner
 
     before = torch.get_num_threads()
     try:
         CentralLearner(parse_config({}), torch_threads=0)
-        assert torch.get_num_threads() == len(os.sched_getaffinity(0))
+        assert torch.get_num_threads() == usable_cores() <= len(os.sched_getaffinity(0))
         CentralLearner(parse_config({}), torch_threads=1)
         assert torch.get_num_threads() == 1
     finally:

@@ -220,3 +220,27 @@ def test_mixed_precision_updates_every_trainer_and_encoder(trainer, actions, enc
     reports = learner.drain_reports()
     assert reports, "no update ran"
     assert all(torch.isfinite(torch.tensor(v)) for v in reports[-1][2].values())
+
+
+def test_usable_cores_are_the_affinity_within_the_containers_cpu_quota(tmp_path):
+    """As mlagents-learn's cpu_utils: a pod limited to 2 CPUs on a big node takes 2."""
+    import os
+
+    from learners.devices import usable_cores
+
+    affinity = len(os.sched_getaffinity(0))
+    assert usable_cores(tmp_path) == affinity  # no cgroup files: the affinity
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert usable_cores(tmp_path) == affinity  # v2 without a quota
+    (tmp_path / "cpu.max").write_text("150000 100000\n")
+    assert usable_cores(tmp_path) == min(affinity, 2)  # 1.5 CPUs: two threads
+    (tmp_path / "cpu.max").write_text("50000 100000\n")
+    assert usable_cores(tmp_path) == 1
+    (tmp_path / "cpu.max").unlink()
+    (tmp_path / "cpu").mkdir()
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")  # v1 without a quota
+    (tmp_path / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert usable_cores(tmp_path) == affinity
+    (tmp_path / "cpu" / "cpu.cfs_quota_us").write_text("100000\n")
+    assert usable_cores(tmp_path) == 1
+    assert usable_cores() >= 1  # this machine's own cgroup
