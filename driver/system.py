@@ -21,7 +21,7 @@ from driver.run_dir import Start
 from learners.devices import DeviceError, learner_device
 from learners.factory import policy_factory
 from learners.remote import learner_actor
-from learners.settings import RunConfig
+from learners.settings import RunConfig, TrainerSettings
 from learners.trainers import trainer
 from rollout.horizons import Horizons
 from rollout.membership import request_workers, workers_wanted
@@ -69,6 +69,11 @@ def choose_device(options: TrainOptions, config: RunConfig) -> str:
         raise TrainingError(str(error)) from None
 
 
+def configured(config: RunConfig) -> list[TrainerSettings]:
+    """Every behavior's settings the config gives, its default_settings included."""
+    return [*config.behaviors.values(), *([config.default] if config.default_given else [])]
+
+
 def learner_threads(options: TrainOptions, config: RunConfig) -> int:
     """The learner's torch threads: ``--learner-threads``, else OMP_NUM_THREADS where the
     driver has it; else 0 (every core the learner may keep busy) where the workers wait
@@ -79,7 +84,7 @@ def learner_threads(options: TrainOptions, config: RunConfig) -> int:
         return options.learner_threads
     if (omp := os.environ.get("OMP_NUM_THREADS", "")).isdigit() and int(omp) > 0:
         return int(omp)
-    given = [*config.behaviors.values(), *([config.default] if config.default_given else [])]
+    given = configured(config)
     waits = all(trainer(s).waits_for_fresh_data for s in given) or not given
     return 0 if waits and not options.collect_ahead and not threaded_ahead(config) else 1
 
@@ -153,7 +158,7 @@ def threaded_ahead(config: RunConfig) -> int:
     set ``threaded``: the largest of their buffers. ML-Agents' threaded trainer updates
     while its environments step on with the old policy (its queue holds 20 trajectories);
     the steps acted meanwhile train the next update, their lag corrected by PPO's ratio."""
-    given = [*config.behaviors.values(), *([config.default] if config.default_given else [])]
+    given = configured(config)
     return max(
         (
             s.hyperparameters.buffer_size
