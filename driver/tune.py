@@ -161,7 +161,7 @@ def _fit(planned: TunePlan) -> TuneResult:
             metric="reward",
             mode="max",
             num_samples=tuning.trials,
-            scheduler=_scheduler(planned),
+            scheduler=_scheduler(planned, all_at_once=_all_at_once(options, tuning)),
             search_alg=BasicVariantGenerator(random_state=options.seed),
             max_concurrent_trials=tuning.concurrent_trials,
             reuse_actors=False,
@@ -203,13 +203,22 @@ def _trial_resources(
     return worker_cpus, bundles
 
 
-def _scheduler(planned: TunePlan) -> Any:
+def _all_at_once(options: TrainOptions, tuning: TuneOptions) -> bool:
+    """Whether every trial has its resources at once: locally they are sized so that
+    ``--concurrent-trials`` (all, by default) fit; a cluster's size is the operator's."""
+    return not options.address and (tuning.concurrent_trials or tuning.trials) >= tuning.trials
+
+
+def _scheduler(planned: TunePlan, all_at_once: bool) -> Any:
     from ray.tune.schedulers import ASHAScheduler, FIFOScheduler, PopulationBasedTraining
+
+    from driver.tune_pbt import AllAtOncePBT
 
     tuning = planned.tuning
     if tuning.scheduler == "pbt":
         interval = tuning.perturbation_interval or max(planned.report_every, planned.max_steps // 5)
-        return PopulationBasedTraining(
+        pbt = AllAtOncePBT if all_at_once else PopulationBasedTraining
+        return pbt(
             time_attr="steps",
             perturbation_interval=interval,
             quantile_fraction=tuning.quantile_fraction,
