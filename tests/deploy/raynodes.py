@@ -190,9 +190,39 @@ def _start_node(
         if process.poll() is not None or time.monotonic() > deadline:
             failure = node.log()
             stop_nodes([node])
-            raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}")
+            head = "" if head_address is None else "\n" + gcs_state(head_address)
+            raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}{head}")
         time.sleep(0.25)
     return node
+
+
+def gcs_state(address: str) -> str:
+    """What holds the head's GCS port and the connections to it, for a worker node that
+    could not reach it (beside the suite only, twice, with the test's driver still
+    connected): a stopped or busy GCS, or a full accept queue, read differently."""
+    port = int(address.rsplit(":", 1)[1])
+    listeners, states = [], {}
+    for conn in psutil.net_connections(kind="tcp"):
+        if conn.status == psutil.CONN_LISTEN and conn.laddr and conn.laddr.port == port:
+            listeners.append(f"{conn.laddr.ip}:{port} by {_describe(conn.pid)}")
+        elif conn.raddr and conn.raddr.port == port:
+            states[conn.status] = states.get(conn.status, 0) + 1
+    held = "; ".join(listeners) or "nothing listens"
+    return f"head GCS port {port}: {held}; connections to it by state: {states}"
+
+
+def _describe(pid: int | None) -> str:
+    if pid is None:
+        return "an unknown process"
+    try:
+        process = psutil.Process(pid)
+        times = process.cpu_times()
+        return (
+            f"{pid} {process.name()} ({process.status()}, cpu {times.user + times.system:.1f} s, "
+            f"{process.num_threads()} threads)"
+        )
+    except psutil.Error:
+        return f"{pid} (gone)"
 
 
 def cluster_processes(tag: str, variable: str = CLUSTER_TAG) -> list[psutil.Process]:
