@@ -109,6 +109,27 @@ def test_options_a_tune_cannot_honour_are_errors(tmp_path):
         TuneOptions(search=search, quantile_fraction=0.7).validate()
 
 
+@pytest.mark.parametrize(
+    ("given", "tuning", "pauses"),
+    [
+        ({}, {"trials": 4}, False),  # local, every trial at once: a trial stops only to exploit
+        ({}, {"trials": 4, "concurrent_trials": 2}, True),  # two wait their turn
+        ({"address": "auto"}, {"trials": 4}, True),  # a cluster's size is not known here
+    ],
+)
+def test_pbt_pauses_for_turns_only_where_trials_wait_for_them(tmp_path, given, tuning, pauses):
+    from ray.tune.schedulers import PopulationBasedTraining
+
+    from driver.tune import _all_at_once, _scheduler
+    from driver.tune_pbt import AllAtOncePBT
+
+    plan = planned(tmp_path, {LR: {"loguniform": [1e-4, 1e-2]}}, **tuning)
+    options = TrainOptions(results_dir=str(tmp_path), **given)
+    scheduler = _scheduler(plan, all_at_once=_all_at_once(options, plan.tuning))
+    assert isinstance(scheduler, PopulationBasedTraining)
+    assert isinstance(scheduler, AllAtOncePBT) is not pauses
+
+
 def test_an_existing_tune_run_is_not_overwritten_without_force(tmp_path):
     (tmp_path / "results" / "run" / "trials").mkdir(parents=True)
     with pytest.raises(TrainingError, match="--force"):
