@@ -161,7 +161,7 @@ def _fit(planned: TunePlan) -> TuneResult:
             metric="reward",
             mode="max",
             num_samples=tuning.trials,
-            scheduler=_scheduler(planned, all_at_once=_all_at_once(options, tuning)),
+            scheduler=_scheduler(planned),
             search_alg=BasicVariantGenerator(random_state=options.seed),
             max_concurrent_trials=tuning.concurrent_trials,
             reuse_actors=False,
@@ -192,7 +192,7 @@ def _trial_resources(
     if options.address:
         worker_cpus = 1.0
     else:
-        at_once = min(tuning.concurrent_trials or tuning.trials, tuning.trials)
+        at_once = _at_once(tuning)
         worker_cpus = min(1.0, (options.cpus / at_once - HEAD_CPUS) / workers)
         if worker_cpus <= 0:
             raise TrainingError(f"--cpus {options.cpus}: too few for {at_once} trials at once")
@@ -203,13 +203,18 @@ def _trial_resources(
     return worker_cpus, bundles
 
 
+def _at_once(tuning: TuneOptions) -> int:
+    """Trials that run at once: ``--concurrent-trials``, all by default."""
+    return min(tuning.concurrent_trials or tuning.trials, tuning.trials)
+
+
 def _all_at_once(options: TrainOptions, tuning: TuneOptions) -> bool:
-    """Whether every trial has its resources at once: locally they are sized so that
-    ``--concurrent-trials`` (all, by default) fit; a cluster's size is the operator's."""
-    return not options.address and (tuning.concurrent_trials or tuning.trials) >= tuning.trials
+    """Whether every trial has its resources at once: locally ``_trial_resources`` sizes
+    them so that ``_at_once`` fit; a cluster's size is the operator's."""
+    return not options.address and _at_once(tuning) == tuning.trials
 
 
-def _scheduler(planned: TunePlan, all_at_once: bool) -> Any:
+def _scheduler(planned: TunePlan) -> Any:
     from ray.tune.schedulers import ASHAScheduler, FIFOScheduler, PopulationBasedTraining
 
     from driver.tune_pbt import AllAtOncePBT
@@ -217,7 +222,7 @@ def _scheduler(planned: TunePlan, all_at_once: bool) -> Any:
     tuning = planned.tuning
     if tuning.scheduler == "pbt":
         interval = tuning.perturbation_interval or max(planned.report_every, planned.max_steps // 5)
-        pbt = AllAtOncePBT if all_at_once else PopulationBasedTraining
+        pbt = AllAtOncePBT if _all_at_once(planned.options, tuning) else PopulationBasedTraining
         return pbt(
             time_attr="steps",
             perturbation_interval=interval,

@@ -6,6 +6,7 @@ every stretch of every trial with its sample ledger balanced."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import subprocess
@@ -120,12 +121,12 @@ def test_options_a_tune_cannot_honour_are_errors(tmp_path):
 def test_pbt_pauses_for_turns_only_where_trials_wait_for_them(tmp_path, given, tuning, pauses):
     from ray.tune.schedulers import PopulationBasedTraining
 
-    from driver.tune import _all_at_once, _scheduler
+    from driver.tune import _scheduler
     from driver.tune_pbt import AllAtOncePBT
 
     plan = planned(tmp_path, {LR: {"loguniform": [1e-4, 1e-2]}}, **tuning)
-    options = TrainOptions(results_dir=str(tmp_path), **given)
-    scheduler = _scheduler(plan, all_at_once=_all_at_once(options, plan.tuning))
+    plan = dataclasses.replace(plan, options=dataclasses.replace(plan.options, **given))
+    scheduler = _scheduler(plan)
     assert isinstance(scheduler, PopulationBasedTraining)
     assert isinstance(scheduler, AllAtOncePBT) is not pauses
 
