@@ -93,27 +93,42 @@ class RayNode:
     tag: str
     ports: dict[str, int] = field(default_factory=dict)
 
+    @property
+    def address(self) -> str:
+        """The GCS address other nodes and drivers join (a head's)."""
+        return f"{LOOPBACK}:{self.ports['gcs']}"
+
     def log(self) -> str:
         try:
             return self.log_path.read_text(errors="replace")[-4000:]
         except OSError:
             return ""
 
+    def gcs_log(self, lines: int = 30) -> str:
+        """The tail of a head's GCS server log: what it did while a node could not reach it."""
+        tails = []
+        for path in sorted(self.temp_dir.glob("session_latest/logs/gcs_server.*")):
+            with contextlib.suppress(OSError):
+                records = path.read_text(errors="replace").splitlines()
+                text = [r for r in records if r.startswith("[")][-lines:]  # not its stats
+                tails.append(f"--- {path.name}:\n" + "\n".join(text))
+        return "\n".join(tails) or f"no GCS log under {self.temp_dir}"
+
 
 def start_node(
     name: str,
     token: str,
     tag: str,
-    head_address: str | None = None,
+    head: RayNode | None = None,
     num_cpus: int = 1,
     extra_env: dict[str, str] | None = None,
     loopback: bool = False,
 ) -> RayNode:
-    """Start a head (``head_address`` None) or a worker node; returns once it is up. A node
+    """Start a head (``head`` None) or a worker node of ``head``; returns once it is up. A node
     that did not come up is stopped and started once more (on two loaded cores a head's
     GCS has missed Ray's deadline for its node info, and a worker node has waited on the
     head's GCS for a minute)."""
-    args = (name, token, tag, head_address, num_cpus, extra_env, loopback)
+    args = (name, token, tag, head, num_cpus, extra_env, loopback)
     try:
         return _start_node(*args)
     except RuntimeError:
@@ -125,7 +140,7 @@ def _start_node(
     name: str,
     token: str,
     tag: str,
-    head_address: str | None,
+    head: RayNode | None,
     num_cpus: int,
     extra_env: dict[str, str] | None,
     loopback: bool,
@@ -164,7 +179,7 @@ def _start_node(
         f"--temp-dir={temp_dir}",
         "--object-store-memory=200000000",
     ]
-    if head_address is None:
+    if head is None:
         command += [
             "--head",
             f"--port={ports['gcs']}",
@@ -174,7 +189,7 @@ def _start_node(
             f"--ray-client-server-port={ports['client']}",
         ]
     else:
-        command.append(f"--address={head_address}")
+        command.append(f"--address={head.address}")
     log_path = temp_dir / "ray-start.log"
     with log_path.open("w") as log:
         process = subprocess.Popen(
@@ -190,10 +205,20 @@ def _start_node(
         if process.poll() is not None or time.monotonic() > deadline:
             failure = node.log()
             stop_nodes([node])
-            head = "" if head_address is None else "\n" + gcs_state(head_address)
-            raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}{head}")
+            state = "" if head is None else f"\n{head_state(head)}"
+            raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}{state}")
         time.sleep(0.25)
     return node
+
+
+def head_state(head: RayNode) -> str:
+    """Whether the head and its GCS are alive, and what they last wrote: for a worker node
+    that could not reach the GCS (``ray start --block`` reports a daemon of its that died)."""
+    alive = "running" if head.process.poll() is None else f"exited {head.process.returncode}"
+    return (
+        f"{gcs_state(head.address)}\n--- head's ray start ({alive}):\n"
+        f"{head.log()[-1500:]}\n{head.gcs_log()}"
+    )
 
 
 def gcs_state(address: str) -> str:
@@ -328,9 +353,8 @@ def _start_cluster(
     loopback = len(node_cpus) == 1
     head = start_node("head", token, tag, None, node_cpus[0], node_env[0], loopback)
     nodes.append(head)
-    address = f"{LOOPBACK}:{head.ports['gcs']}"
     for index, cpus in enumerate(node_cpus[1:], start=1):
-        nodes.append(start_node(f"w{index}", token, tag, address, cpus, extra_env=node_env[index]))
+        nodes.append(start_node(f"w{index}", token, tag, head, cpus, extra_env=node_env[index]))
 
 
 def listening_addresses(tag: str) -> dict[str, list[str]]:

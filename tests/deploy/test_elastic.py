@@ -18,7 +18,6 @@ import psutil
 import pytest
 
 from tests.deploy.raynodes import (
-    LOOPBACK,
     auth_env,
     cluster_processes,
     new_token,
@@ -89,8 +88,7 @@ def test_workers_leave_with_a_stopped_node_and_join_with_a_new_one(tmp_path):
     token = new_token()
     first, second = uuid.uuid4().hex, uuid.uuid4().hex
     with private_cluster(token, [1, 1], [{}, {NODE: first}]) as nodes:
-        address = f"{LOOPBACK}:{nodes[0].ports['gcs']}"
-        driver = Driver(address, token, tmp_path / "driver.err")
+        driver = Driver(nodes[0].address, token, tmp_path / "driver.err")
         try:
             ready = driver.phase("ready")
             assert len(set(ready["nodes"].values())) == 2, ready  # a worker on each node
@@ -106,7 +104,7 @@ def test_workers_leave_with_a_stopped_node_and_join_with_a_new_one(tmp_path):
             assert shrunk["removed"] == 1, shrunk  # and collection went on without it
 
             nodes.append(
-                start_node("w2", token, nodes[0].tag, address, 1, extra_env={NODE: second})
+                start_node("w2", token, nodes[0].tag, nodes[0], 1, extra_env={NODE: second})
             )
             driver.go_on()
             grew = driver.phase("grew")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.deploy.raynodes import LOOPBACK, auth_env, new_token, private_cluster
+from tests.deploy.raynodes import auth_env, new_token, private_cluster
 
 pytestmark = pytest.mark.integration
 
@@ -24,7 +24,7 @@ def test_workers_spread_over_two_nodes_with_independent_port_registries(tmp_path
     registries = {"head": tmp_path / "head-ports", "w1": tmp_path / "w1-ports"}
     node_env = [{"UNITY_ROLLOUT_RUNTIME_DIR": str(path)} for path in registries.values()]
     with private_cluster(token, [1, 1], node_env) as nodes:
-        address = f"{LOOPBACK}:{nodes[0].ports['gcs']}"
+        address = nodes[0].address
         env = auth_env(token)
         env["UNITY_ROLLOUT_RUNTIME_DIR"] = str(tmp_path / "driver-ports")  # must stay unused
         driver = subprocess.run(
