@@ -7,6 +7,11 @@ it just before it needs it. The thread stays alive until ``shutdown``: Ray's nod
 processes die with the thread that started them (their parent-death signal is bound to
 it), so a thread that returned would take the node down with it.
 
+Under load a start can fail on a timing of Ray's own: the raylet gives its dashboard agent
+15 s to write its ports, and dies when the agent (a Python process) has not by then. The
+wait for the raylet to register notices that at once, and the lean head starts again, up to
+``LEAN_TRIES`` times, instead of polling a dead raylet for minutes.
+
 Local mode also leaves out three of the helper processes Ray's head starts, none of which
 a local run uses: the autoscaler monitor (nothing to scale), the log monitor (worker
 output goes to Ray's log files, not to the driver: ``log_to_driver=False``) and the
@@ -20,14 +25,18 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import psutil
 import ray
 import ray._private.node
+import ray._private.ray_constants
 import ray._private.services
 import ray._private.worker
 
@@ -38,6 +47,7 @@ GCS_WAIT = "RAY_gcs_server_port_wait_time_s"  # Ray's variable: seconds for its 
 NODE_POLL_S = 0.02  # how often ray.init asks the GCS whether its raylet has registered
 NODE_WAIT_S = 180.0  # give up polling, and leave the wait to Ray, after this long
 LEAN_PROCESSES = ("monitor", "log_monitor", "dashboard")  # Ray's names for what we leave out
+LEAN_TRIES = 3  # lean heads whose raylet died before registering, before Ray's full head
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +74,45 @@ def _shm_free() -> int:
     return stats.f_bsize * stats.f_bavail
 
 
-def _lean_node_class(node: type) -> type:
+class RayletExited(Exception):
+    """The raylet died before it registered (not a RuntimeError: Ray's own wait for the
+    node retries those for 30 s)."""
+
+
+def _raylet_failure(logs: Path) -> str:
+    """What the raylet said as it died: its last fatal record (``C``), shortened."""
+    try:
+        records = (logs / "raylet.out").read_text(errors="replace").splitlines()
+    except OSError:
+        return f"no raylet.out in {logs}"
+    fatal = [r for r in records if " C " in r[:40]]  # [date time C pid tid] (raylet) ...
+    if not fatal:
+        return f"see {logs / 'raylet.out'}"
+    said = fatal[-1].split("Check failed: ", 1)[-1]
+    return said.split(".has_value() ", 1)[-1][:300]
+
+
+@dataclass
+class _Raylets:
+    """The raylets a lean head started, for the wait on their registration to watch."""
+
+    started: list[tuple[subprocess.Popen, Path]] = field(default_factory=list)
+
+    def check(self) -> None:
+        for process, logs in self.started:
+            if (code := process.poll()) is not None:
+                raise RayletExited(f"exit {code}: {_raylet_failure(logs)}")
+
+
+def _lean_node_class(node: type, raylets: _Raylets) -> type:
     class LeanNode(node):  # type: ignore[misc,valid-type]
         """Ray's head node without the autoscaler monitor, log monitor and dashboard head."""
+
+        def start_ray_processes(self) -> None:
+            super().start_ray_processes()
+            logs = Path(self.get_logs_dir_path())
+            kind = ray._private.ray_constants.PROCESS_TYPE_RAYLET
+            raylets.started += [(i.process, logs) for i in self.all_processes.get(kind, [])]
 
         def __init__(self, ray_params: Any, *args: Any, **kwargs: Any) -> None:
             ray_params.no_monitor = True
@@ -86,19 +132,26 @@ def _lean_node_class(node: type) -> type:
     return LeanNode
 
 
-def _prompt_get_node(get_node: Any) -> Any:
+def _prompt_get_node(get_node: Any, raylets: _Raylets) -> Any:
     """Ray's ``get_node`` asks the GCS for the new raylet once a second; ours asks every
     20 ms first, so ``ray.init`` goes on as soon as the raylet registers (about 1.5 s
-    after it starts here, which Ray's own poll rounds up to 2 s)."""
+    after it starts here, which Ray's own poll rounds up to 2 s). It stops at once with
+    ``RayletExited`` if the raylet died; a GCS slow to answer is asked again."""
 
     def prompt(gcs_address: str, node_id: str) -> Any:
-        with contextlib.suppress(Exception):  # any trouble: Ray's own wait decides
-            client = ray._raylet.GcsClient(address=gcs_address)
-            give_up = time.monotonic() + NODE_WAIT_S
-            while time.monotonic() < give_up:
+        give_up = time.monotonic() + NODE_WAIT_S
+        client = None
+        while time.monotonic() < give_up:
+            raylets.check()
+            try:
+                client = client or ray._raylet.GcsClient(address=gcs_address)
                 if any(n.hex() == node_id for n in client.get_all_node_info(timeout=5)):
                     break
-                time.sleep(NODE_POLL_S)
+            except (AttributeError, TypeError):  # Ray's internals moved: its own wait decides
+                break
+            except Exception:  # a GCS busy past the call's 5 s: ask again
+                log.debug("the GCS did not answer yet", exc_info=True)
+            time.sleep(NODE_POLL_S)
         return get_node(gcs_address, node_id)
 
     return prompt
@@ -111,8 +164,9 @@ def _lean_head() -> Iterator[None]:
     back afterwards, so worker processes and later calls see Ray unchanged."""
     node_module, services = ray._private.node, ray._private.services
     node, get_node = node_module.Node, services.get_node
-    node_module.Node = _lean_node_class(node)
-    services.get_node = _prompt_get_node(get_node)
+    raylets = _Raylets()
+    node_module.Node = _lean_node_class(node, raylets)
+    services.get_node = _prompt_get_node(get_node, raylets)
     try:
         yield
     finally:
@@ -148,14 +202,21 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
     if dashboard:
         ray.init(**options)
         return
-    try:
-        with _lean_head():
-            ray.init(**options)
-    except Exception as error:  # a Ray whose internals moved: start it the plain way
-        log.warning("lean local Ray did not start (%s); starting Ray's full head", error)
-        if ray._private.worker._global_node is not None:  # started, even if not connected
-            ray.shutdown()
-        ray.init(**options)
+    for attempt in range(1, LEAN_TRIES + 1):
+        try:
+            with _lean_head():
+                ray.init(**options)
+            return
+        except RayletExited as error:  # a raylet that died starting on a busy machine
+            again = "starting it again" if attempt < LEAN_TRIES else "starting Ray's full head"
+            log.warning("Ray's raylet died before it registered (%s); %s", error, again)
+        except Exception as error:  # a Ray whose internals moved: start it the plain way
+            log.warning("lean local Ray did not start (%s); starting Ray's full head", error)
+            break
+        finally:
+            if not ray.is_initialized() and ray._private.worker._global_node is not None:
+                ray.shutdown()  # a head that started, even if not connected
+    ray.init(**options)
 
 
 class BackgroundRay:

@@ -153,3 +153,58 @@ def test_asking_for_the_dashboard_starts_rays_full_head(monkeypatch):
     starting.shutdown()
     assert calls == [(True, True)]  # Ray's own node, dashboard on
     assert build_parser().parse_args(["train"]).dashboard is False
+
+
+# Ray's dashboard agent, on the first start only, writes no ports until its raylet is gone:
+# as an agent too slow to import on a busy machine, which the raylet waits 15 s for and
+# then dies of. In every Python process of the run (sitecustomize), acting in the agent's.
+SLOW_FIRST_AGENT = """
+import os, time
+marker = os.environ.get("UNITY_ROLLOUT_TEST_SLOW_AGENT")
+with open("/proc/self/cmdline", "rb") as command:
+    agent = b"dashboard/agent.py" in command.read()
+if agent and marker and not os.path.exists(marker):
+    open(marker, "w").close()
+    parent, give_up = os.getppid(), time.monotonic() + 60
+    while os.getppid() == parent and time.monotonic() < give_up:
+        time.sleep(0.1)
+    os._exit(1)
+"""
+START_AND_RUN = """
+import json, ray
+from driver import local_ray
+local_ray.init_local_ray(1)
+up = ray.get(ray.remote(lambda: 1).remote())
+ray.shutdown()
+print(json.dumps({"up": up}))
+"""
+
+
+def test_a_raylet_that_died_starting_is_started_again_at_once(tmp_path):
+    """Ray 2.60's raylet dies when its dashboard agent has not written its ports within
+    15 s (seen beside the suite). The lean head notices the death at once, says why, and
+    starts again; before, it polled the dead raylet for 3.5 min, then fell back to Ray's
+    full head, which the same load can kill the same way."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    (tmp_path / "sitecustomize.py").write_text(SLOW_FIRST_AGENT)
+    marker = tmp_path / "slowed"
+    root = str(Path(__file__).resolve().parents[2])
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(tmp_path), root]),
+        "UNITY_ROLLOUT_TEST_SLOW_AGENT": str(marker),
+    }
+    out = subprocess.run(
+        [sys.executable, "-c", START_AND_RUN], capture_output=True, text=True, env=env, timeout=150
+    )  # a safety stop, shorter than the 3.5 min a dead raylet was polled for
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert marker.exists(), "the first agent was slowed"
+    assert json.loads(out.stdout.splitlines()[-1])["up"] == 1  # the second head runs tasks
+    said = out.stderr
+    assert "Ray's raylet died before it registered (exit" in said, said[-3000:]
+    assert "Timed out waiting for file" in said and "metrics_agent_port" in said, said[-3000:]
+    assert "starting it again" in said and "full head" not in said, said[-3000:]
