@@ -18,10 +18,18 @@ output goes to Ray's log files, not to the driver: ``log_to_driver=False``) and 
 dashboard head (``--dashboard`` starts Ray with it). ``ray.init`` has no switch for them,
 so ``_lean_head`` adjusts Ray's own node class for the length of the call; if that fails
 for any reason, plain ``ray.init`` runs instead.
+
+Ray's thread starts each process with a ``preexec_fn``, so each start runs Python's fork
+hooks: the before-fork ones, the fork, the after-fork ones. A module that registers a
+pair (``before=lock.acquire, after_in_parent=lock.release``) between the two, imported by
+the main thread meanwhile, gets only its release run: "RuntimeError: release unlocked
+lock", printed as ignored in ``_fork_exec``. ``concurrent.futures.thread`` is the one
+such module the driver's imports (torch's) bring in, so it is imported here, first.
 """
 
 from __future__ import annotations
 
+import concurrent.futures.thread  # noqa: F401  (its fork hooks, before Ray's thread forks)
 import contextlib
 import logging
 import os

@@ -208,3 +208,48 @@ def test_a_raylet_that_died_starting_is_started_again_at_once(tmp_path):
     assert "Ray's raylet died before it registered (exit" in said, said[-3000:]
     assert "Timed out waiting for file" in said and "metrics_agent_port" in said, said[-3000:]
     assert "starting it again" in said and "full head" not in said, said[-3000:]
+
+
+# The driver's main thread imports torch and friends while Ray starts on its thread, and
+# each of Ray's starts runs Python's fork hooks (its Popen has a preexec_fn): the before
+# ones, the fork, the after ones. A module that registers a before/after_in_parent pair in
+# between gets only its release run ("release unlocked lock", concurrent.futures.thread's).
+# Waiting for that interleaving is luck; what makes it possible is certain: a pair
+# registered by the main thread while Ray's thread is starting.
+REGISTERED_BESIDE_RAY = """
+import os, sys, threading
+registered, starting = [], None
+real = os.register_at_fork
+
+def spy(**hooks):
+    if starting is not None and "before" in hooks:
+        registered.append(repr(hooks["before"]))
+    return real(**hooks)
+
+os.register_at_fork = spy
+from driver import cli  # what `unity-rollout train` has imported when it starts Ray
+from driver.local_ray import BackgroundRay
+starting = BackgroundRay(1)
+import driver.train  # the imports that overlap Ray's start
+starting.wait()
+starting.shutdown()
+print(registered)
+"""
+
+
+def test_no_fork_hooks_are_registered_while_ray_starts_beside_the_imports(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parents[2])
+    out = subprocess.run(
+        [sys.executable, "-c", REGISTERED_BESIDE_RAY],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": root},
+        cwd=tmp_path,
+        timeout=240,
+    )  # a safety stop
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip() == "[]", out.stdout
