@@ -40,6 +40,7 @@ from rollout.unity import (
     UnityError,
     UnityInstance,
     UnityStartError,
+    UnityStartTimeout,
 )
 
 log = logging.getLogger(__name__)
@@ -106,13 +107,14 @@ class Collector:
     # --- lifecycle ----------------------------------------------------------------------
 
     def start(self, restarted: bool = False) -> None:
-        """``restarted``: this collector replaces one that died in this run, so the build
-        has worked: a failed launch is retried as any restart is (within the restart
-        policy), not final as a run's first launch is."""
+        """A failed launch is retried as any restart is (within the restart policy) when
+        this collector replaces one that died in this run (the build has worked) or when
+        the player was only slow to connect; a run's first player that exits or breaks
+        the protocol ends the run at once."""
         try:
             self.unity.start()
         except (UnityStartError, *RECOVERABLE) as error:
-            if not restarted:
+            if not (restarted or isinstance(error, UnityStartTimeout)):
                 raise
             self.unity.restart(f"{type(error).__name__}: {error}")
         self.unity.reset()

@@ -78,6 +78,12 @@ class UnityStartError(UnityError):
     """A launch that never connected: fatal at a run's start, a failed start in a restart."""
 
 
+class UnityStartTimeout(UnityStartError):
+    """A launch still running that did not connect within ``timeout_wait``: a slow machine
+    (a loaded cluster node) as much as a broken build, so even a run's first launch is
+    tried again under the restart policy, as mlagents-learn does."""
+
+
 @dataclass(frozen=True)
 class EngineSettings:
     """Engine configuration sent at start; mlagents-learn's defaults for training."""
@@ -272,7 +278,7 @@ class UnityInstance:
             raise UnityStartError(f"{config.build}: {detail}") from None
         except UnityTimeOutException:
             self.allocator.release(port)
-            raise UnityStartError(
+            raise UnityStartTimeout(
                 f"{config.build}: did not connect within timeout_wait ({config.timeout_wait} s)"
                 f"{self._log()}"
             ) from None

@@ -8,10 +8,11 @@ heavy imports: ``tests/compat`` also runs under other interpreters.
 from __future__ import annotations
 
 import os
-import time
 import uuid
 
 import pytest
+
+from tests.waiting import poll_until
 
 SESSION_TAG = "UNITY_ROLLOUT_TEST_SESSION"
 os.environ.setdefault(SESSION_TAG, uuid.uuid4().hex)
@@ -62,11 +63,8 @@ def tagged_processes(include_ray: bool = False) -> list:
 
 def wait_for_no_processes(include_ray: bool, seconds: float = 10.0) -> list[str]:
     """Wait for tagged processes to end; kill and describe those that do not."""
-    deadline = time.monotonic() + seconds
+    poll_until(lambda: not tagged_processes(include_ray), seconds, every=0.2)
     left = tagged_processes(include_ray)
-    while left and time.monotonic() < deadline:
-        time.sleep(0.2)
-        left = tagged_processes(include_ray)
     details = []
     for process in left:
         try:

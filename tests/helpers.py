@@ -20,6 +20,7 @@ from tensordict import TensorDict
 
 from batches import keys
 from rollout.ports import PortAllocator, PortRange, ephemeral_range
+from tests.waiting import poll_until
 
 # Above the kernel's ephemeral range (32768-60999 by default): no outgoing connection (a
 # player's, Ray's) can take one of these between the check and the test's bind, as it can
@@ -60,17 +61,17 @@ def free_run(count: int = 8) -> tuple[int, int]:
     raise RuntimeError(f"no run of {count} ports in {TEST_PORTS}")
 
 
-def wait_gone(pid: int, seconds: float) -> bool:
-    """Whether process ``pid`` is gone (or a zombie) within ``seconds``."""
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        try:
-            if psutil.Process(pid).status() == psutil.STATUS_ZOMBIE:
-                return True
-        except psutil.NoSuchProcess:
-            return True
-        time.sleep(0.05)
-    return False
+def gone(pid: int) -> bool:
+    """Whether process ``pid`` has ended (a zombie counts: it runs nothing)."""
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def wait_gone(pid: int, seconds: float = 30) -> bool:
+    """Whether process ``pid`` is gone (or a zombie) within ``seconds`` (a safety stop)."""
+    return poll_until(lambda: gone(pid), seconds)
 
 
 @contextlib.contextmanager
@@ -180,9 +181,8 @@ def kill_run(driver: subprocess.Popen) -> None:
 def assert_run_gone(marker: str, seconds: float = 60) -> None:
     """Every process of the run exits within ``seconds``; leftovers are killed by PID and
     fail the test."""
-    deadline = time.monotonic() + seconds
-    while (left := run_marked(marker)) and time.monotonic() < deadline:
-        time.sleep(0.5)
+    poll_until(lambda: not run_marked(marker), seconds)
+    left = run_marked(marker)
     for process in left:
         with contextlib.suppress(psutil.NoSuchProcess):
             process.kill()

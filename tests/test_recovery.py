@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import time
 import uuid
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from driver.run_dir import plan
 from learners import checkpoint
 from learners.config import CONFIG_DIR
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
+from tests.waiting import poll_until
 
 BEHAVIOR = "3DBall?team=0"
 
@@ -43,13 +43,14 @@ def write_config(results: Path, **settings: int) -> None:
 
 
 def wait_for_checkpoints(driver: subprocess.Popen, checkpoints: Path, count: int) -> None:
-    deadline = time.monotonic() + 240  # a safety stop: the budget is checkpoints
-    while len(list(checkpoints.rglob("step-*.pt"))) < count:
+
+    def written() -> bool:
         assert driver.poll() is None, driver.communicate()[0][-2000:]
-        if time.monotonic() > deadline:  # what the run said: it ran out once beside the suite
-            kill_run(driver)
-            raise AssertionError(f"no checkpoint #{count}: {driver.communicate()[0][-3000:]}")
-        time.sleep(0.2)
+        return len(list(checkpoints.rglob("step-*.pt"))) >= count
+
+    if not poll_until(written, 240):  # a safety stop: the budget is checkpoints
+        kill_run(driver)  # and what the run said
+        raise AssertionError(f"no checkpoint #{count}: {driver.communicate()[0][-3000:]}")
 
 
 def start_train(results: Path, marker: str, *extra: str) -> subprocess.Popen:

@@ -22,7 +22,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ from pathlib import Path
 import psutil
 
 from tests.helpers import free_port
+from tests.waiting import poll_until
 
 VENV_BIN = Path(sys.executable).parent
 RAY = str(VENV_BIN / "ray")
@@ -200,14 +200,13 @@ def _start_node(
             start_new_session=True,  # its own process group: we stop it and nothing else
         )
     node = RayNode(name, process, temp_dir, log_path, tag, ports)
-    deadline = time.monotonic() + 60
-    while "Ray runtime started" not in node.log():
-        if process.poll() is not None or time.monotonic() > deadline:
-            failure = node.log()
-            stop_nodes([node])
-            state = "" if head is None else f"\n{head_state(head)}"
-            raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}{state}")
-        time.sleep(0.25)
+    # Ray's own waits for its GCS and raylet are 60 s and more: this one is a safety stop
+    poll_until(lambda: "Ray runtime started" in node.log() or process.poll() is not None, 180)
+    if "Ray runtime started" not in node.log():
+        failure = node.log()
+        stop_nodes([node])
+        state = "" if head is None else f"\n{head_state(head)}"
+        raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}{state}")
     return node
 
 
@@ -287,9 +286,7 @@ def stop_nodes(nodes: list[RayNode], grace_s: float = 5.0) -> list[str]:
     for node in reversed(nodes):
         _signal_group(node, signal.SIGTERM)
     tags = {node.tag for node in nodes}
-    deadline = time.monotonic() + grace_s
-    while time.monotonic() < deadline and any(cluster_processes(t) for t in tags):
-        time.sleep(0.25)
+    poll_until(lambda: not any(cluster_processes(t) for t in tags), grace_s)
     for node in nodes:
         _signal_group(node, signal.SIGKILL)
     for tag in tags:
@@ -299,7 +296,7 @@ def stop_nodes(nodes: list[RayNode], grace_s: float = 5.0) -> list[str]:
     for node in nodes:
         with contextlib.suppress(subprocess.TimeoutExpired):
             node.process.wait(timeout=10)
-    time.sleep(0.5)
+    poll_until(lambda: not any(cluster_processes(t) for t in tags), 10)  # the SIGKILLed
     left = []
     for tag in tags:
         for process in cluster_processes(tag):

@@ -25,6 +25,7 @@ from tests.deploy.raynodes import (
     start_node,
     stop_node,
 )
+from tests.waiting import poll_until
 
 pytestmark = pytest.mark.integration
 
@@ -95,10 +96,10 @@ def test_workers_leave_with_a_stopped_node_and_join_with_a_new_one(tmp_path):
             assert players(first), "the second node runs a Unity player"
 
             stop_node(nodes[1])
-            deadline = time.monotonic() + 30  # players watch their worker and exit with it
-            while players(first) and time.monotonic() < deadline:
-                time.sleep(0.5)
-            assert not cluster_processes(first, NODE), "processes outlived their node"
+            # players watch their worker and exit with it
+            assert poll_until(lambda: not cluster_processes(first, NODE), 60), (
+                f"processes outlived their node: {cluster_processes(first, NODE)}"
+            )
             driver.go_on()
             shrunk = driver.phase("shrunk")
             assert shrunk["removed"] == 1, shrunk  # and collection went on without it

@@ -16,10 +16,15 @@ import pytest
 ENTRYPOINT = Path(__file__).resolve().parents[2] / "scripts/docker-entrypoint.sh"
 
 
-def run(*args: str, env: dict[str, str] | None = None, prefix: tuple[str, ...] = ()):
+def run(
+    *args: str,
+    env: dict[str, str] | None = None,
+    prefix: tuple[str, ...] = (),
+    script: Path = ENTRYPOINT,
+):
     path = f"{Path(sys.executable).parent}:/usr/bin:/bin"  # unity-rollout, no xvfb-run
     return subprocess.run(
-        [*prefix, "sh", str(ENTRYPOINT), *args],
+        [*prefix, "sh", str(script), *args],
         env={"PATH": path, "HOME": "/root", **(env or {})},
         capture_output=True,
         text=True,
@@ -47,13 +52,20 @@ def test_xvfb_run_without_xvfb_names_the_render_variant():
 
 @pytest.mark.skipif(os.getuid() != 0 or not shutil.which("setpriv"), reason="needs root")
 def test_an_uid_without_a_writable_home_gets_tmp():
+    """Run as uid 65534 from a copy it can read: the checkout may sit where it cannot (a
+    mode-0700 directory), as may pytest's tmp_path."""
     nobody = ("setpriv", "--reuid=65534", "--regid=65534", "--clear-groups")
-    result = run("sh", "-c", "echo $HOME", env={"HOME": "/"}, prefix=nobody)
-    assert (result.returncode, result.stdout) == (0, "/tmp\n"), result.stderr
-    home = tempfile.mkdtemp(dir="/tmp")  # pytest's tmp_path is not reachable by uid 65534
+    home, readable = tempfile.mkdtemp(dir="/tmp"), Path(tempfile.mkdtemp(dir="/tmp"))
     try:
+        readable.chmod(0o755)
+        script = Path(shutil.copy(ENTRYPOINT, readable / ENTRYPOINT.name))
+        script.chmod(0o755)
+        as_nobody = {"prefix": nobody, "script": script}
+        result = run("sh", "-c", "echo $HOME", env={"HOME": "/"}, **as_nobody)
+        assert (result.returncode, result.stdout) == (0, "/tmp\n"), result.stderr
         os.chown(home, 65534, 65534)
-        kept = run("sh", "-c", "echo $HOME", env={"HOME": home}, prefix=nobody)
-        assert kept.stdout == f"{home}\n"  # a writable HOME is kept
+        kept = run("sh", "-c", "echo $HOME", env={"HOME": home}, **as_nobody)
+        assert kept.stdout == f"{home}\n", kept.stderr  # a writable HOME is kept
     finally:
         shutil.rmtree(home)
+        shutil.rmtree(readable)

@@ -167,7 +167,7 @@ if agent and marker and not os.path.exists(marker):
     open(marker, "w").close()
     parent, give_up = os.getppid(), time.monotonic() + 60
     while os.getppid() == parent and time.monotonic() < give_up:
-        time.sleep(0.1)
+        time.sleep(0.1)  # poll interval: the agent's parent (its raylet) ending
     os._exit(1)
 """
 START_AND_RUN = """

@@ -12,7 +12,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
@@ -27,6 +26,7 @@ from driver.train import train
 from learners import checkpoint
 from learners.export import export_checkpoint
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
+from tests.waiting import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -151,11 +151,12 @@ def test_a_signal_stops_the_run_with_a_final_checkpoint(tmp_path, how):
     driver = start_train_cli(marker, "--results-dir", str(tmp_path), "--max-seconds", "300")
     try:
         run_dir = Path(tmp_path) / "run"
-        deadline = time.monotonic() + 120
-        while not list((run_dir / "3DBall").glob("events.*")):  # training has begun
+
+        def begun() -> bool:  # training has begun: its first events file
             assert driver.poll() is None, driver.stdout.read() if driver.stdout else ""
-            assert time.monotonic() < deadline, "training did not start"
-            time.sleep(0.5)
+            return bool(list((run_dir / "3DBall").glob("events.*")))
+
+        wait_for(begun, "training's first events file", 240)
         listening = {
             f"{c.laddr.ip}:{c.laddr.port}"
             for p in run_marked(marker)
@@ -281,10 +282,7 @@ def test_two_runs_on_one_node_share_the_port_registry(tmp_path):
     assert [run.returncode for run in runs] == [0, 0], outputs
     ports = PortAllocator(registry_dir=registry).quarantined()
     assert len(ports) == 4, ports
-    deadline = time.monotonic() + 30
-    while run_marked(marker) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    assert not run_marked(marker)
+    wait_for(lambda: not run_marked(marker), "the runs' processes to end", 60)
 
 
 def test_cuda_on_a_cluster_without_a_gpu_is_one_line_before_any_worker(ray_session, tmp_path):

@@ -11,7 +11,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from driver.tune_search import with_values
 from learners.config import parse_config
 from rollout.ports import PortAllocator
 from tests.helpers import assert_run_gone
+from tests.waiting import poll_until
 
 CONFIG = {
     "behaviors": {
@@ -169,10 +169,13 @@ def test_pbt_with_four_trials_on_two_cores(tmp_path):
         command, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
     )
     try:
-        deadline = time.monotonic() + PBT_SAFETY_STOP_S
-        while process.poll() is None and time.monotonic() < deadline:
+
+        def ended() -> bool:  # sampled at each look: the most leases held at once
+            nonlocal most_at_once
             most_at_once = max(most_at_once, len(ports.leases()))
-            time.sleep(0.5)
+            return process.poll() is not None
+
+        poll_until(ended, PBT_SAFETY_STOP_S, every=0.5)
         output = process.communicate(timeout=5)[0]
     finally:
         if process.poll() is None:

@@ -90,14 +90,14 @@ def test_close_leaves_no_process_and_is_idempotent(allocator):
     env.reset()
     env.close()
     env.close()
-    assert wait_gone(pid, 10)
+    assert wait_gone(pid)
     with pytest.raises(UnityError, match="closed"):
         env.step(0)
     vector = UnityVectorEnv("unitysim:3DBall", allocator=allocator)
     pid = vector.unity.player_pid
     vector.close()
     vector.close()
-    assert vector.closed and wait_gone(pid, 10)
+    assert vector.closed and wait_gone(pid)
 
 
 def run_3dball(env: UnityVectorEnv, seed: int, steps: int) -> tuple[list, list]:

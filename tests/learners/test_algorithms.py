@@ -22,6 +22,7 @@ from learners.policies import ActorCritic
 from learners.ppo import PPO, Steps
 from learners.settings import NetworkSettings
 from tests.learners.fakes import segment, vector_spec
+from tests.waiting import wait_for
 
 
 def settings(trainer: str = "ppo", gamma: float = 0.9, **hyper):
@@ -364,7 +365,6 @@ def test_progress_counts_the_update_under_way(monkeypatch):
     from another thread), includes that update so far: a window's busy fraction never
     takes a whole update at once."""
     import threading
-    import time
 
     learner = CentralLearner(parse_config({"behaviors": {"A": {"trainer_type": "ppo"}}}))
     spec = vector_spec(continuous=2)
@@ -374,15 +374,18 @@ def test_progress_counts_the_update_under_way(monkeypatch):
 
     def slow_update(progress: float) -> dict[str, float]:
         started.set()
-        release.wait(5)
+        release.wait(60)
         return {}
 
     monkeypatch.setattr(state.algorithm, "update", slow_update)
+    before = learner.stats.update_seconds
     worker = threading.Thread(target=learner._update, args=("A?team=0", state))
     worker.start()
-    assert started.wait(5)
-    time.sleep(0.2)
+    assert started.wait(60)
+    busy = lambda: learner.progress()["stats"].update_seconds > before  # noqa: E731
+    wait_for(busy, "the update under way in progress()", 60)
     during = learner.progress()["stats"].update_seconds
+    assert learner.stats.update_seconds == before, "the update has not ended: it is counted so far"
     release.set()
-    worker.join(5)
-    assert 0.2 <= during <= learner.stats.update_seconds
+    worker.join(60)
+    assert before < during <= learner.stats.update_seconds

@@ -24,8 +24,8 @@ for kill in range(10):  # a child saves without pause; killed at a random moment
         os._exit(0)
     first, deadline = f"{folder}/step-{kill * 1000:010d}.pt", time.monotonic() + 60
     while not os.path.exists(first) and time.monotonic() < deadline:  # a loaded machine
-        time.sleep(0.01)
-    time.sleep(rng.uniform(0.05, 0.4))
+        time.sleep(0.01)  # poll interval: the first checkpoint's file
+    time.sleep(rng.uniform(0.05, 0.4))  # the kill's random moment, not a wait
     os.kill(child, signal.SIGKILL)
     os.waitpid(child, 0)
 """

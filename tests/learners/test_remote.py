@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import threading
-import time
 
 import pytest
 
@@ -15,6 +14,7 @@ from learners.config import parse_config
 from learners.remote import BUILD_NICENESS, LearnerHost
 from tests.learners.fakes import segment, vector_spec
 from tests.learners.test_algorithms import as_segment
+from tests.waiting import wait_for
 
 BEHAVIOR = "A?team=0"
 
@@ -158,9 +158,7 @@ def test_a_behavior_met_before_its_rows_counts_towards_the_end_of_the_run(built)
         host.submit([piece(1), piece(2)])  # 64 steps of A's 80
         meeting = threading.Thread(target=host.meet, args=(specs,))
         meeting.start()  # while loading, it waits for the build
-        deadline = time.monotonic() + 10
-        while "B" not in host.progress()["steps"] and time.monotonic() < deadline:
-            time.sleep(0.01)
+        wait_for(lambda: "B" in host.progress()["steps"], "B's steps in progress()", 60)
         progress = host.progress()
         assert progress["steps"] == {BEHAVIOR: 64, "B": 0} and not progress["done"]
         host.gate.set()

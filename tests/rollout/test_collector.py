@@ -234,6 +234,54 @@ def test_a_restarted_workers_failed_launch_is_retried_but_a_runs_first_is_final(
         restarted.close()
 
 
+def slow_build(folder, launches_that_never_connect: int | None):
+    """A build whose first launches run but never open their port (a player on a loaded
+    node slower than ``timeout_wait``); after them (if not None) the real stand-in."""
+    from unitysim.launcher import build as build_launchers
+
+    (launcher,) = build_launchers(folder / "build", ["3DBall"])
+    count, path = folder / "launches", folder / "Slow.x86_64"
+    works = (
+        ""
+        if launches_that_never_connect is None
+        else (
+            f'if [ "$(wc -c < "{count}")" -gt {launches_that_never_connect} ]; then '
+            f'exec "{launcher}" "$@"; fi\n'
+        )
+    )
+    path.write_text(f'#!/bin/sh\necho >> "{count}"\n{works}exec tail -f /dev/null\n')
+    path.chmod(0o755)
+    return path, count
+
+
+def test_a_runs_first_launch_that_is_slow_to_connect_is_retried(allocator, tmp_path):
+    build, launches = slow_build(tmp_path, 1)
+    policy = RestartPolicy(backoff_s=0.0)
+    config = UnityConfig(str(build), restarts=policy, timeout_wait=10)  # about the timeout
+    collector = Collector(config, actor_factory, horizon=10, allocator=allocator)
+    try:
+        collector.start()  # not restarted: the run's first launch
+        assert collector.unity.restarts == 1 and launches.read_text().count("\n") == 2
+        assert collector.collect(min_steps=1)
+    finally:
+        collector.close()
+
+
+def test_a_build_that_never_connects_gives_up_in_one_line_naming_the_wait(allocator, tmp_path):
+    build, _ = slow_build(tmp_path, None)
+    policy = RestartPolicy(backoff_s=0.0, max_failed_starts=1)
+    config = UnityConfig(str(build), restarts=policy, timeout_wait=1)  # about the timeout
+    collector = Collector(config, actor_factory, horizon=10, allocator=allocator)
+    try:
+        with pytest.raises(UnityError) as error:
+            collector.start()
+    finally:
+        collector.close()
+    message = str(error.value)
+    assert "\n" not in message and "2 launches in a row failed" in message, message
+    assert "did not connect within timeout_wait (1 s)" in message, message
+
+
 def test_cameras_sent_as_png_reach_the_learner_as_uint8(allocator):
     """GridWorld's camera arrives as PNG: the segments carry it as uint8 0..255 (its
     palette: 0, 128, 255), its goal signal as float32, through the real protocol."""

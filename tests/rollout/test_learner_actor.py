@@ -3,13 +3,12 @@ calls answer while an update runs."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
 from learners.config import parse_config
 from learners.remote import learner_actor
 from tests.learners.fakes import segment, vector_spec
+from tests.waiting import wait_for
 
 pytestmark = pytest.mark.integration
 
@@ -32,12 +31,13 @@ def test_progress_answers_while_an_update_runs(ray_session):
     try:
         data = [segment(spec, 64, 65, "A?team=0")]  # 4160 steps: more than the buffer
         updating = learner.submit.remote(data)  # 60 epochs of 64 minibatches: seconds
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:  # until the submit has counted its steps
-            progress = ray_session.get(learner.progress.remote(), timeout=60)
-            if progress["steps"]:
-                break
-            time.sleep(0.05)
+        progress: dict = {}
+
+        def counted() -> bool:  # the submit has counted its steps
+            progress.update(ray_session.get(learner.progress.remote(), timeout=60))
+            return bool(progress["steps"])
+
+        wait_for(counted, "the submit's steps in progress()", 240)
         ready, _ = ray_session.wait([updating], timeout=0)
         assert ready == [], f"progress waited for the update: {progress}"
         assert progress["steps"] == {"A?team=0": 4160} and progress["version"] == 0, progress

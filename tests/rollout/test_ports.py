@@ -9,12 +9,12 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from rollout.ports import PortAllocator, PortError, PortRange, default_range, ephemeral_range
+from tests.waiting import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -55,7 +55,7 @@ def test_released_port_is_quarantined_until_expiry(tmp_path):
     assert port in allocator.quarantined()
     with pytest.raises(PortError, match="1 in quarantine"):
         allocator.lease()
-    time.sleep(1.1)
+    wait_for(lambda: port not in allocator.quarantined(), "the quarantine's end", 30)
     assert allocator.lease() == port
 
 
@@ -72,14 +72,18 @@ def test_port_held_by_a_foreign_listener_is_skipped(tmp_path):
 
 def test_lease_of_a_killed_owner_is_reclaimed(tmp_path):
     script = (
-        "import sys, time\n"
+        "import sys\n"
         "from rollout.ports import PortAllocator, PortRange\n"
         "allocator = PortAllocator(PortRange(23600, 23609), sys.argv[1])\n"
         "print(allocator.lease(), flush=True)\n"
-        "time.sleep(60)\n"
+        "sys.stdin.read()\n"  # it holds the lease until killed (or the test's end)
     )
     owner = subprocess.Popen(
-        [sys.executable, "-c", script, str(tmp_path)], cwd=ROOT, stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", script, str(tmp_path)],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
     )
     try:
         port = int(owner.stdout.readline())

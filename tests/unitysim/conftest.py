@@ -33,7 +33,6 @@ def open_env(builds: Path, tmp_path: Path) -> OpenEnv:
     @contextlib.contextmanager
     def opener(name: str, **kwargs: object) -> Iterator[UnityEnvironment]:
         kwargs.setdefault("no_graphics", False)  # as a real build, by default
-        kwargs.setdefault("timeout_wait", 20)
         kwargs.setdefault("log_folder", str(tmp_path))
         env = UnityEnvironment(file_name=str(builds / name), base_port=free_port(), **kwargs)
         process = env._process

@@ -6,7 +6,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import psutil
@@ -18,13 +17,13 @@ pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[2]
 
 TRAINER = """
-import sys, time
+import sys
 import mlagents_compat
 from mlagents_envs.environment import UnityEnvironment
 env = UnityEnvironment(file_name=sys.argv[1], base_port=int(sys.argv[2]), no_graphics=True)
 env.reset()
 print(env._process.pid, flush=True)
-time.sleep(120)
+sys.stdin.read()  # until killed (or the test's end)
 """
 
 
@@ -32,6 +31,7 @@ def test_player_exits_when_its_trainer_is_killed(builds):
     trainer = subprocess.Popen(
         [sys.executable, "-c", TRAINER, str(builds / "3DBall"), str(free_port())],
         cwd=ROOT,
+        stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
     )
@@ -40,7 +40,7 @@ def test_player_exits_when_its_trainer_is_killed(builds):
         assert psutil.pid_exists(player_pid)
         os.kill(trainer.pid, signal.SIGKILL)
         trainer.wait(10)
-        assert wait_gone(player_pid, 5.0), "player outlived its SIGKILLed trainer"
+        assert wait_gone(player_pid), "player outlived its SIGKILLed trainer"
     finally:
         if trainer.poll() is None:
             trainer.kill()
@@ -48,13 +48,14 @@ def test_player_exits_when_its_trainer_is_killed(builds):
 
 
 def test_close_ends_the_player_promptly(open_env):
+    """Promptly: the player ends itself on the close message; mlagents kills one that has
+    not ended within ``timeout_wait`` (then its code would be -9)."""
     with open_env("3DBall") as env:
         env.reset()
-        pid = env._process.pid
-        started = time.monotonic()
+        player = env._process
         env.close()
-        assert time.monotonic() - started < 5
-        assert wait_gone(pid, 1.0)
+        assert player.returncode == 0
+        assert wait_gone(player.pid)
 
 
 def test_launcher_execs_so_the_launched_pid_is_the_player(open_env):
