@@ -5,7 +5,7 @@ itself (:class:`Learner`). ``rollout`` calls them and ``learners`` implements th
 import them from here.
 
 The service forwards each worker's segments (an ObjectRef to ``list[Segment]``, the
-format of docs/batch-format.md; a ``rollout.ledger.Collected``, a list that also carries
+format of docs/batch-format.md; a ``rollout.collecting.ledger.Collected``, a list that also carries
 the worker's counts for the sample ledger) with ``submit``; it keeps at most a few
 submissions in flight, so a slow learner slows collection instead of growing a queue.
 ``submit`` returns the learner's newest weights version, and its demand: how many more
@@ -48,7 +48,7 @@ def base_name(behavior: str) -> str:
 
 
 class Actor(Protocol):
-    """What a worker needs of a policy (``learners.acting.NumpyActor`` is one): numpy
+    """What a worker needs of a policy (``learners.acting.numpy_policy.NumpyActor`` is one): numpy
     observations per sensor and an allowed-mask in; continuous [n, c], discrete
     [n, branches] and log-probabilities [n, c + branches] (one per action component) out;
     and the continuous action Unity gets for a chosen one (the policy's convention:
@@ -65,7 +65,7 @@ class Actor(Protocol):
 
 class RecurrentActor(Actor, Protocol):
     """An actor whose policy has memory (``memory_size`` > 0): it acts from each agent's
-    memory ``[n, memory_size]`` and gives the next one last (``rollout.segments``)."""
+    memory ``[n, memory_size]`` and gives the next one last (``rollout.collecting.segments``)."""
 
     @property
     def memory_size(self) -> int: ...

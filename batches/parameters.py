@@ -2,9 +2,9 @@
 draws from at each episode reset, grouped in lessons (a curriculum; one lesson when the
 config gives a plain value or sampler).
 
-The driver decides the lesson (``driver/curriculum.py``); workers send each lesson's values
-to Unity over the EnvironmentParameters side channel (``rollout/unity.py``). Plain frozen
-data, so that a lesson travels to Ray workers with a collect.
+The driver decides the lesson (``driver/training/curriculum.py``); workers send each lesson's values
+to Unity over the EnvironmentParameters side channel (``rollout/environment/unity.py``). Plain
+frozen data, so that a lesson travels to Ray workers with a collect.
 """
 
 from __future__ import annotations

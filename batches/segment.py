@@ -1,7 +1,7 @@
 """The packed trajectories one worker hands the learner: plain numpy, no torch.
 
 A :class:`Segment` is what travels (Ray's object store, the learner's queue); the learner
-takes it ``to_tensordict``, the batch of docs/batch-format.md. ``rollout.segments``
+takes it ``to_tensordict``, the batch of docs/batch-format.md. ``rollout.collecting.segments``
 builds them from Unity's steps. :class:`Sources` lets whoever takes them (a learner, a
 queue) take a delivery Ray retried once.
 """

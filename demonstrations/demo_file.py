@@ -34,7 +34,12 @@ from mlagents_envs.communicator_objects.brain_parameters_pb2 import BrainParamet
 from mlagents_envs.communicator_objects.demonstration_meta_pb2 import DemonstrationMetaProto
 
 from batches.specs import spec_mismatch
-from demonstrations import protos
+from demonstrations.protos import (
+    behavior_spec,
+    brain_parameters,
+    observation_array,
+    observation_proto,
+)
 from demonstrations.records import DemoError, DemoMeta, Demonstration, DemoStep
 
 SUFFIX = ".demo"
@@ -117,7 +122,7 @@ def write_demo(path: str | os.PathLike[str], demo: Demonstration, png: Iterable[
             )
         out = bytearray(_varint(len(meta)) + meta)
         out.extend(bytes(META_AREA - len(out)))
-        _append(out, protos.brain_parameters(demo.behavior_name, spec.action_spec))
+        _append(out, brain_parameters(demo.behavior_name, spec.action_spec))
         for index, step in enumerate(demo.steps):
             try:
                 _append(out, _pair_proto(step, spec, compressed))
@@ -192,7 +197,7 @@ def _pair_proto(step: DemoStep, spec: BehaviorSpec, png: frozenset[int]) -> Mess
     for index, (array, sensor) in enumerate(
         zip(step.observations, spec.observation_specs, strict=True)
     ):
-        info.observations.append(protos.observation_proto(array, sensor, index in png))
+        info.observations.append(observation_proto(array, sensor, index in png))
     action = AgentActionProto(
         continuous_actions=step.continuous.tolist(), discrete_actions=step.discrete.tolist()
     )
@@ -237,7 +242,7 @@ def _parse(data: bytes) -> Demonstration:
     if not pairs:
         raise ValueError("no steps, so no behavior spec (its sensors are known from steps only)")
     try:
-        spec = protos.behavior_spec(brain, pairs[0].agent_info)
+        spec = behavior_spec(brain, pairs[0].agent_info)
     except ValueError as error:
         raise ValueError(f"corrupt behavior spec: {error}") from None
     steps = tuple(_step(i, pair, spec) for i, pair in enumerate(pairs))
@@ -293,7 +298,7 @@ def _step(index: int, pair: AgentInfoActionPairProto, spec: BehaviorSpec) -> Dem
                 f"the first step's {sensor.shape}"
             )
         try:
-            observations.append(protos.observation_array(obs))
+            observations.append(observation_array(obs))
         except ValueError as error:
             raise ValueError(f"step {index}: observation {i}: {error}") from None
     continuous, discrete = _actions_of(action, spec)

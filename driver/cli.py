@@ -1,4 +1,5 @@
-"""The ``unity-rollout`` command line: the one place that wires the parts together.
+"""The ``unity-rollout`` command line: each sub-command's options, checks and output; the
+systems it runs are wired in ``driver/system.py``.
 
 Each sub-command is a small function taking parsed arguments; heavy imports happen inside
 the command so ``--help`` stays instant.
@@ -19,7 +20,7 @@ from driver.options import CollectOptions, RecordDemoOptions, TrainOptions, Tune
 
 if TYPE_CHECKING:
     from driver.local_ray import BackgroundRay
-    from driver.run_dir import Plan
+    from driver.training.planner import Plan
 
 Command = Callable[[argparse.Namespace], int]
 
@@ -61,10 +62,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     """Train with the central learner (PPO, SAC or IMPALA per the trainer config)."""
     import logging
 
-    from driver.run_dir import open_run, plan
+    from driver.training.planner import open_run, plan
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("driver.curriculum").setLevel(logging.INFO)  # lessons, as mlagents-learn
+    logging.getLogger("driver.training.curriculum").setLevel(
+        logging.INFO
+    )  # lessons, as mlagents-learn
     try:
         planned = plan(from_arguments(TrainOptions, args))  # needs neither Ray nor torch
         if planned.loads_checkpoints:  # torch, to check them against the config
@@ -93,8 +96,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _train(options: TrainOptions, starting: BackgroundRay | None, planned: Plan) -> tuple[int, str]:
     import logging
 
-    from driver.train import train
-    from rollout.service import RolloutError
+    from driver.training.train import train
+    from rollout.serving.service import RolloutError
 
     if options.debug:  # ours, not every library's
         for package in ("driver", "rollout", "learners"):
@@ -137,12 +140,9 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     import ray
     from rich.console import Console
 
-    from driver.counting_learner import CountingLearner
     from driver.local_ray import init_local_ray
-    from learners.factory import actor_factory
-    from rollout.builds import UnityError, resolve_build
-    from rollout.service import RolloutService, ServiceConfig
-    from rollout.unity import UnityConfig
+    from driver.system import build_collect_system
+    from rollout.environment.builds import UnityError, resolve_build
 
     console = Console()
     build = None if options.env == "editor" else options.env
@@ -156,14 +156,8 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     else:
         init_local_ray(options.cpus)
     try:
-        learner = ray.remote(CountingLearner).options(num_cpus=0).remote()
-        config = ServiceConfig(
-            UnityConfig(build, seed=options.seed),
-            num_workers=options.workers,
-            horizon=options.horizon,
-            worker_cpus=min(1.0, options.cpus / options.workers) if not options.address else 1.0,
-        )
-        with RolloutService(config, actor_factory, learner) as service:
+        service, learner = build_collect_system(options)
+        with service:
             console.print(f"starting {options.workers} workers on {options.env} ...")
             service.run(until=lambda m: m.segments > 0)  # start-up is not in the budget
             deadline = time.monotonic() + options.seconds
@@ -188,7 +182,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     """Export a checkpoint's policies to ONNX files for Unity (one per behavior)."""
     import pickle
 
-    from learners.export import export_checkpoint
+    from learners.host.export import export_checkpoint
 
     try:
         written = export_checkpoint(args.source, args.out)
@@ -207,9 +201,9 @@ def _cmd_record_demo(args: argparse.Namespace) -> int:
         options = from_arguments(RecordDemoOptions, args)
     except TrainingError as error:
         return _error(error)
-    from driver.record_demo import record_demo
-    from rollout.builds import UnityError
-    from rollout.unity import RECOVERABLE
+    from driver.recording.record import record_demo
+    from rollout.environment.builds import UnityError
+    from rollout.environment.unity import RECOVERABLE
 
     try:
         recorded = record_demo(options)
@@ -238,7 +232,7 @@ def _cmd_tune(args: argparse.Namespace) -> int:
     try:
         tuning = from_arguments(TuneOptions, args)
         options = from_arguments(TrainOptions, args)
-        from driver.tune import plan_tune
+        from driver.tuning.tune import plan_tune
 
         planned = plan_tune(options, tuning)
     except TrainingError as error:
@@ -252,7 +246,7 @@ def _cmd_tune(args: argparse.Namespace) -> int:
         )
     if not options.address:
         _loopback_only_ray()
-    from driver.tune import tune_run
+    from driver.tuning.tune import tune_run
 
     result = tune_run(planned)
     if result.best_trial is None:

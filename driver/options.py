@@ -21,7 +21,7 @@ from driver.declaration import (
     option,
     positive,
 )
-from rollout.restarts import RestartPolicy
+from rollout.environment.restarts import RestartPolicy
 
 __all__ = ["CollectOptions", "RecordDemoOptions", "TrainOptions", "TrainingError", "TuneOptions"]
 
@@ -40,7 +40,7 @@ def workers_count(value: int | str) -> str | None:
 
 
 def device_value(text: str) -> str:
-    from learners.devices import DEVICES, DeviceError, check_device
+    from learners.host.devices import DEVICES, DeviceError, check_device
 
     try:
         return check_device(text)

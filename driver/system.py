@@ -1,6 +1,7 @@
 """A run's system wired from its options and trainer config: what every Unity instance
 gets, the learner actor and the service with its workers (not yet started). The CLI's
-``train`` and a Tune trial (``driver/tune_trial.py``) build theirs the same way."""
+``train`` and a Tune trial (``driver/tuning/trial.py``) build theirs the same way, and
+``collect`` its counting one."""
 
 from __future__ import annotations
 
@@ -13,21 +14,21 @@ from typing import Any
 import ray
 
 from batches.expert_steps import ExpertSteps
-from driver.curriculum import LessonPlan, lesson_plan
 from driver.declaration import TrainingError
-from driver.learner_keeper import initialize_into, load_into
-from driver.options import TrainOptions
-from driver.run_dir import Start
-from learners.devices import DeviceError, learner_device
-from learners.factory import policy_factory
-from learners.remote import learner_actor
-from learners.settings import RunConfig, TrainerSettings
-from learners.trainers import trainer
-from rollout.horizons import Horizons
-from rollout.membership import request_workers, workers_wanted
-from rollout.ports import PortRange
-from rollout.service import RolloutService, ServiceConfig
-from rollout.unity import EngineSettings, UnityConfig
+from driver.options import CollectOptions, TrainOptions
+from driver.training.curriculum import LessonPlan, lesson_plan
+from driver.training.learner_keeper import initialize_into, load_into
+from driver.training.planner import Start
+from learners.acting.factory import actor_factory, policy_factory
+from learners.host.devices import DeviceError, learner_device
+from learners.host.remote import learner_actor
+from learners.trainer_config.settings import RunConfig, TrainerSettings
+from learners.trainer_config.trainer_types import trainer
+from rollout.collecting.horizons import Horizons
+from rollout.environment.ports import PortRange
+from rollout.environment.unity import EngineSettings, UnityConfig
+from rollout.serving.membership import request_workers, workers_wanted
+from rollout.serving.service import RolloutService, ServiceConfig
 
 
 def unity_config(
@@ -185,10 +186,10 @@ def build_system(
     worker_cpus: float | None = None,
 ) -> tuple[RolloutService, Any]:
     """Learner actor (restored when resuming, from another run's networks when
-        initialized) and the service with its workers (not started), which wait for the
-        learner's weights when it does not start from the factory's. ``experts``: the run's
-    demonstrations (``Plan.experts``); ``worker_cpus``: each
-        worker's share, where the caller sizes it (a Tune trial's placement group)."""
+    initialized) and the service with its workers (not started), which wait for the
+    learner's weights when it does not start from the factory's. ``experts``: the run's
+    demonstrations (``Plan.experts``); ``worker_cpus``: each worker's share, where the
+    caller sizes it (a Tune trial's placement group)."""
     initial = start.initial if start.resume is None else None
     learner = start_learner(options, config, device, experts, initial)
     if start.resume is not None:
@@ -196,3 +197,20 @@ def build_system(
     awaits = start.resume is not None or start.initial is not None
     settings = service_config(options, config, unity, awaits, worker_cpus)
     return RolloutService(settings, policy_factory(config, options.seed), learner), learner
+
+
+def build_collect_system(options: CollectOptions) -> tuple[RolloutService, Any]:
+    """``unity-rollout collect``'s system: the workers feeding a counting learner, which
+    never trains (a pipeline check), and the learner actor."""
+    from driver.training.counting_learner import CountingLearner
+
+    learner = ray.remote(CountingLearner).options(num_cpus=0).remote()
+    build = None if options.env == "editor" else options.env
+    local_share = min(1.0, options.cpus / options.workers)
+    config = ServiceConfig(
+        UnityConfig(build, seed=options.seed),
+        num_workers=options.workers,
+        horizon=options.horizon,
+        worker_cpus=1.0 if options.address else local_share,
+    )
+    return RolloutService(config, actor_factory, learner), learner

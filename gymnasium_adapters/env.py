@@ -5,7 +5,7 @@
 (3DBall: 12), each agent a sub-environment, in autoreset mode SAME_STEP: ML-Agents resets
 an agent on its own, so the step that ends its episode already returns the new episode's
 first observation, and the final one goes to ``info["final_obs"]``. Both own a
-:class:`rollout.unity.UnityInstance` (leased port, restarts) and end it in ``close()``.
+:class:`rollout.environment.unity.UnityInstance` (leased port, restarts) and end it in ``close()``.
 
 Observations: one ``Box`` per sensor (float32; 3-D sensors are images [C, H, W] in
 [0, 1]), a ``Dict`` keyed by sensor name for several. Actions: ``Box(-1, 1)``,
@@ -35,8 +35,8 @@ from gymnasium_adapters.slots import (
     sensor_keys,
     to_action_tuple,
 )
-from rollout.ports import PortAllocator, PortRange
-from rollout.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance
+from rollout.environment.ports import PortAllocator, PortRange
+from rollout.environment.unity import RECOVERABLE, UnityConfig, UnityError, UnityInstance
 
 
 def _config(build: str | UnityConfig | None, seed: int | None, **overrides: Any) -> UnityConfig:
@@ -79,7 +79,9 @@ class _Owner:
         allocator: PortAllocator,
         max_exchanges: int,
     ) -> None:
-        self.config, self.allocator, self.max_exchanges = config, allocator, max_exchanges
+        self.config = config
+        self.allocator = allocator
+        self.max_exchanges = max_exchanges
         self.unity = UnityInstance(config, allocator)
         self.unity.start()
         try:

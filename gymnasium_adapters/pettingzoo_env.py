@@ -35,8 +35,8 @@ from gymnasium_adapters.slots import (
     sensor_keys,
     to_action_tuple,
 )
-from rollout.ports import PortAllocator, PortRange
-from rollout.unity import UnityConfig, UnityError, UnityInstance
+from rollout.environment.ports import PortAllocator, PortRange
+from rollout.environment.unity import UnityConfig, UnityError, UnityInstance
 
 
 class UnityParallelEnv(ParallelEnv):
@@ -91,7 +91,9 @@ class UnityParallelEnv(ParallelEnv):
             self._start(self.config)
         else:
             self._require().reset()
-        self.agents, self._waiting, self._last = [], {}, {}
+        self.agents = []
+        self._waiting = {}
+        self._last = {}
         self._episodes.clear()
         obs, _, _, _, infos = self._exchange(step_first=False)
         return obs, infos

@@ -12,7 +12,7 @@ import numpy as np
 from gymnasium import spaces
 from mlagents_envs.base_env import ActionTuple, BehaviorSpec, DecisionSteps
 
-from rollout.unity import UnityError, UnityInstance
+from rollout.environment.unity import UnityError, UnityInstance
 
 CONTINUOUS, DISCRETE = "continuous", "discrete"
 DEFAULT_MAX_EXCHANGES = 1000
@@ -225,7 +225,8 @@ class BehaviorSlots:
         if unknown:
             raise AgentSetError(
                 f"{self.behavior}: agent(s) {unknown} ended an episode without having acted; "
-                f"the adapters need a fixed set of agents (use rollout.collector for this one)"
+                "the adapters need a fixed set of agents (use rollout.collecting.collector for "
+                "this one)"
             )
         return np.asarray([where[int(a)] for a in agent_ids], np.int64)
 
@@ -244,7 +245,8 @@ class BehaviorSlots:
             raise AgentSetError(
                 f"{self.behavior}: the agent set changed (missing {gone}, new {extra}, "
                 f"{len(decisions)} deciding of {len(self.slot_ids)}); the adapters need a fixed "
-                f"set of agents deciding together (use rollout.collector for this behavior)"
+                "set of agents deciding together (use rollout.collecting.collector for this "
+                "behavior)"
             )
         self._order = order
 

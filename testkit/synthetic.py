@@ -15,11 +15,11 @@ import numpy as np
 from batches import keys
 from batches.contracts import ActorFactory, Weights
 from batches.segment import Segment
-from rollout.collector import Collector, CollectorMetrics
-from rollout.horizons import Horizons
-from rollout.ledger import Collected, Counts
-from rollout.ports import PortAllocator, PortRange
-from rollout.unity import UnityConfig
+from rollout.collecting.collector import Collector, CollectorMetrics
+from rollout.collecting.horizons import Horizons
+from rollout.collecting.ledger import Collected, Counts
+from rollout.environment.ports import PortAllocator, PortRange
+from rollout.environment.unity import UnityConfig
 
 
 def replayed(segment: Segment, version: int, source: tuple[str, int]) -> Segment:
@@ -36,7 +36,7 @@ class SyntheticWorker:
     at once with one of them, under a new source number and the version it was sent, so
     the driver and the learner see a stream as fast as they can take it.
 
-    Same constructor and calls as ``rollout.worker.RolloutWorker`` (``RolloutService``'s
+    Same constructor and calls as ``rollout.collecting.worker.RolloutWorker`` (``RolloutService``'s
     ``worker_class``); as a Ray actor: ``ray.remote(SyntheticWorker)``."""
 
     RECORDED = 4  # collects recorded at start, replayed in turn

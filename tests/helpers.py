@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDict
 
 from batches import keys
-from rollout.ports import PortAllocator, PortRange, ephemeral_range
+from rollout.environment.ports import PortAllocator, PortRange, ephemeral_range
 from tests.waiting import poll_until
 
 # Above the kernel's ephemeral range (32768-60999 by default): no outgoing connection (a
@@ -113,10 +113,10 @@ def train_in_process(
     steps are spent; (best mean return, history of (steps, episodes, best)). Each collect
     asks no more than the learner's next on-policy update wants, as the service does. The
     wall-time stop only ends a hung run: a busy machine is slower, same steps."""
-    from learners.config import load_config
-    from learners.learner import CentralLearner
-    from rollout.collector import Collector
-    from rollout.unity import UnityConfig
+    from learners.host.learner import CentralLearner
+    from learners.trainer_config.parse import load_config
+    from rollout.collecting.collector import Collector
+    from rollout.environment.unity import UnityConfig
 
     torch.manual_seed(seed)
     learner = CentralLearner(load_config(config), seed=seed)

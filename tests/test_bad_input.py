@@ -22,7 +22,7 @@ import yaml
 from driver import cli
 from driver.declaration import from_arguments
 from driver.options import TrainOptions
-from driver.run_dir import plan
+from driver.training.planner import plan
 from tests.helpers import assert_run_gone
 
 pytestmark = pytest.mark.integration
@@ -235,8 +235,8 @@ def test_a_behavior_starts_from_its_init_path_as_mlagents_learn(with_run, how):
     """ML-Agents' per-behavior ``init_path``: a checkpoint file or folder, or with
     ``--initialize-from`` a file name in that run's folder of the behavior. The run
     starts from those networks (none of their steps)."""
-    from driver.run_dir import open_run
-    from learners import checkpoint
+    from driver.training.planner import open_run
+    from learners.host import checkpoint
 
     folder = with_run / "results/run/checkpoints/Basic_team0"
     file = checkpoint.newest_first(folder)[0]
@@ -261,7 +261,7 @@ def test_and_initialized_from_a_fitting_run_it_plays_its_policy_in_inference(wit
     in 7 steps; the factory's random weights would not."""
     import torch
 
-    from learners import checkpoint
+    from learners.host import checkpoint
 
     (saved,) = (with_run / "results/run/checkpoints/Basic_team0").glob("*.pt")
     state = checkpoint.read(saved)

@@ -88,10 +88,10 @@ def test_cli_help_lists_commands():
 WORKER = (  # its actor class's module, the policy factory it unpickles, one vector behavior
     "import pickle\n"
     "import numpy as np\n"
-    "import rollout.worker\n"
+    "import rollout.collecting.worker\n"
     "from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec\n"
     "from mlagents_envs.base_env import DimensionProperty, ObservationType\n"
-    "from learners.factory import actor_factory\n"
+    "from learners.acting.factory import actor_factory\n"
     "factory = pickle.loads(pickle.dumps(actor_factory))\n"
     "obs = ObservationSpec((8,), (DimensionProperty.NONE,), ObservationType.DEFAULT, 'v')\n"
     "actor = factory('3DBall?team=0', BehaviorSpec([obs], ActionSpec(2, (3,))))\n"
@@ -103,15 +103,15 @@ CAMERA_WORKER = WORKER + (  # and a camera behavior (AnimalArena's shape), actin
     "actor = factory('Arena?team=0', BehaviorSpec([camera, obs], ActionSpec(0, (3, 3))))\n"
     "actor.act({'camera': np.zeros((4, 3, 84, 84), np.uint8), 'v': np.zeros((4, 8), np.float32)})\n"
 )
-DRIVER = "import driver.cli, driver.train\n"  # `unity-rollout train`, before the learner
+DRIVER = "import driver.cli, driver.training.train\n"  # `unity-rollout train`, before the learner
 
 
 @pytest.mark.parametrize(
     ("process", "script", "expected", "absent"),
     [
-        ("worker", WORKER, ("rollout.collector", "learners.factory"), ("torch",)),
-        ("camera worker", CAMERA_WORKER, ("learners.image_acting",), ("torch",)),
-        ("driver", DRIVER, ("rollout.service", "learners.remote"), ("torch",)),
+        ("worker", WORKER, ("rollout.collecting.collector", "learners.acting.factory"), ("torch",)),
+        ("camera worker", CAMERA_WORKER, ("learners.acting.numpy_images",), ("torch",)),
+        ("driver", DRIVER, ("rollout.serving.service", "learners.host.remote"), ("torch",)),
     ],
 )
 def test_workers_and_the_driver_load_neither_torch_nor_tensordict_nor_torchrl(

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from driver.options import TrainOptions
-from driver.train import train
-from learners.config import load_config
+from driver.training.train import train
+from learners.trainer_config.parse import load_config
 
 pytestmark = pytest.mark.integration
 

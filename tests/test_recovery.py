@@ -20,9 +20,9 @@ import pytest
 import yaml
 
 from driver.options import TrainOptions
-from driver.run_dir import plan
-from learners import checkpoint
-from learners.config import CONFIG_DIR
+from driver.training.planner import plan
+from learners.host import checkpoint
+from learners.trainer_config.parse import CONFIG_DIR
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
 from tests.waiting import poll_until
 

@@ -32,10 +32,10 @@ from torch.utils.data import IterableDataset
 
 from batches import keys
 from batches.segment import Segment
-from rollout.ports import PortRange
-from rollout.service import RolloutService
-from rollout.service_config import ServiceConfig
-from rollout.unity import UnityConfig
+from rollout.environment.ports import PortRange
+from rollout.environment.unity import UnityConfig
+from rollout.serving.config import ServiceConfig
+from rollout.serving.service import RolloutService
 from torchrl_adapters.batch_queue import ALL, BatchQueue
 from torchrl_adapters.conventions import BEHAVIOR, to_torchrl
 from torchrl_adapters.module_actor import ModuleActorFactory

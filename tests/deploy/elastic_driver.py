@@ -19,10 +19,10 @@ import ray
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 from ray.util.state import list_actors
 
-from driver.counting_learner import CountingLearner
-from learners.factory import actor_factory
-from rollout.service import RolloutService, ServiceConfig
-from rollout.unity import UnityConfig
+from driver.training.counting_learner import CountingLearner
+from learners.acting.factory import actor_factory
+from rollout.environment.unity import UnityConfig
+from rollout.serving.service import RolloutService, ServiceConfig
 
 PHASE_S = 120.0  # a safety stop for each phase
 

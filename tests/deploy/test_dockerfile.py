@@ -99,7 +99,9 @@ def test_package_sources_are_copied_and_not_ignored():
     sources = [source.rstrip("/") for sources in copied for source in sources]
     for pattern in packages:
         assert pattern.rstrip("*") in sources, f"package {pattern} is not copied"
-    assert "config" in sources  # learners.config.CONFIG_DIR: the shipped trainer configs
+    assert (
+        "config" in sources
+    )  # learners.trainer_config.parse.CONFIG_DIR: the shipped trainer configs
     assert "README.md" in sources  # pyproject's readme: needed to build the metadata
     ignored = [
         line.strip()

@@ -269,10 +269,10 @@ def ray_nodes(spec: dict) -> dict[str, dict[str, float]]:
 
 @pytest.mark.parametrize("name, spec", gpu_specs())
 def test_the_learner_actor_fits_the_gpu_group_and_rollout_workers_do_not(name, spec, monkeypatch):
-    """The learner's real Ray options under --device cuda (learners.remote) against what
+    """The learner's real Ray options under --device cuda (learners.host.remote) against what
     each group's node offers: only the GPU group can take the learner, and only the Unity
-    groups can take a rollout worker (one CPU, no GPU: driver.train on a cluster)."""
-    from learners.remote import learner_actor
+    groups can take a rollout worker (one CPU, no GPU: driver.training.train on a cluster)."""
+    from learners.host.remote import learner_actor
 
     recorded = _RecordedActor()
     monkeypatch.setattr(ray, "remote", recorded)

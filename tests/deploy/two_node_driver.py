@@ -14,11 +14,11 @@ import sys
 import ray
 from ray.util.state import list_actors
 
-from driver.counting_learner import CountingLearner
-from learners.factory import actor_factory
-from rollout.ports import PortAllocator
-from rollout.service import RolloutService, ServiceConfig
-from rollout.unity import UnityConfig
+from driver.training.counting_learner import CountingLearner
+from learners.acting.factory import actor_factory
+from rollout.environment.ports import PortAllocator
+from rollout.environment.unity import UnityConfig
+from rollout.serving.service import RolloutService, ServiceConfig
 
 
 def main(argv: list[str]) -> int:

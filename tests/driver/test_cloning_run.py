@@ -15,9 +15,9 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from demonstrations import write_demo
 from driver.declaration import TrainingError
 from driver.options import TrainOptions
-from driver.train import train
-from learners.cloning import REPORT
-from rollout.service import RolloutError
+from driver.training.train import train
+from learners.reward_signals.cloning import REPORT
+from rollout.serving.service import RolloutError
 from tests.demonstrations.samples import CONTINUOUS, demonstration
 from tests.driver.test_record_demo import record
 from tests.helpers import assert_rewards_per_episode

@@ -16,7 +16,7 @@ from batches.parameters import (
     Lesson,
     Uniform,
 )
-from driver.curriculum import LessonPlan, Returns, seeded
+from driver.training.curriculum import LessonPlan, Returns, seeded
 
 
 def lessons(criteria: CompletionCriteria, values: tuple[float, ...] = (1.0, 2.0, 3.0)):
@@ -35,7 +35,7 @@ def test_progress_moves_on_past_the_threshold_once_enough_episodes_finished(capl
     totals = {"Jumper?team=0": (5, 5.0, 50)}
     assert p.update({"Jumper?team=0": 500}, totals) == (False, False)  # 5 of 10 episodes
     assert p.lessons == {"wall": 0}
-    with caplog.at_level(logging.INFO, logger="driver.curriculum"):
+    with caplog.at_level(logging.INFO, logger="driver.training.curriculum"):
         assert p.update({"Jumper?team=0": 500}, {"Jumper?team=0": (12, 12.0, 120)}) == (
             True,
             False,

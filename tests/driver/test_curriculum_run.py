@@ -16,8 +16,8 @@ import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from driver.options import TrainOptions
-from driver.train import train
-from learners import checkpoint
+from driver.training.train import train
+from learners.host import checkpoint
 
 pytestmark = pytest.mark.integration
 

@@ -13,7 +13,7 @@ import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from driver.options import TrainOptions
-from driver.train import train
+from driver.training.train import train
 from tests.driver.test_record_demo import record
 from tests.helpers import assert_rewards_per_episode
 

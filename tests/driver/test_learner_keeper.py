@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from driver.learner_keeper import LearnerKeeper
-from rollout.service_config import RolloutError
+from driver.training.learner_keeper import LearnerKeeper
+from rollout.serving.config import RolloutError
 
 
 def test_a_learner_out_of_memory_ends_the_run_instead_of_refilling_the_same_buffer(tmp_path):
@@ -30,8 +30,8 @@ def test_a_learner_lost_before_the_first_checkpoint_comes_back_with_the_runs_fir
 
     from driver.options import TrainOptions
     from driver.system import start_learner
-    from learners.config import parse_config
-    from learners.learner import CentralLearner
+    from learners.host.learner import CentralLearner
+    from learners.trainer_config.parse import parse_config
     from tests.learners.fakes import segment, vector_spec
 
     config = parse_config(

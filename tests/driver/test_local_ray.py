@@ -230,7 +230,7 @@ os.register_at_fork = spy
 from driver import cli  # what `unity-rollout train` has imported when it starts Ray
 from driver.local_ray import BackgroundRay
 starting = BackgroundRay(1)
-import driver.train  # the imports that overlap Ray's start
+import driver.training.train  # the imports that overlap Ray's start
 starting.wait()
 starting.shutdown()
 print(registered)

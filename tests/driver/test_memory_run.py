@@ -14,10 +14,10 @@ import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from driver.options import TrainOptions
-from driver.run_dir import TrainingError
-from driver.train import train
-from learners import checkpoint
-from learners.export import export_checkpoint
+from driver.training.planner import TrainingError
+from driver.training.train import train
+from learners.host import checkpoint
+from learners.host.export import export_checkpoint
 
 pytestmark = pytest.mark.integration
 

@@ -10,7 +10,7 @@ import pytest
 from driver.cli import build_parser, main
 from driver.declaration import TrainingError, declared, flag, from_arguments, from_settings
 from driver.options import CollectOptions, TrainOptions
-from learners.config import parse_config
+from learners.trainer_config.parse import parse_config
 
 
 @pytest.mark.parametrize(
@@ -142,7 +142,7 @@ def test_mlagents_learns_engine_and_environment_options_reach_every_unity():
 
     from driver.options import TrainOptions
     from driver.system import service_config, unity_config
-    from rollout.ports import PortRange
+    from rollout.environment.ports import PortRange
 
     config = parse_config({"engine_settings": {"width": 64, "time_scale": 5, "no_graphics": True}})
     options = TrainOptions(
@@ -186,8 +186,8 @@ def test_a_learner_given_zero_threads_takes_every_core_it_may_run_on():
 
     import torch
 
-    from learners.devices import usable_cores
-    from learners.learner import CentralLearner
+    from learners.host.devices import usable_cores
+    from learners.host.learner import CentralLearner
 
     before = torch.get_num_threads()
     try:

@@ -10,9 +10,9 @@ import logging
 import pytest
 import torch
 
-from driver.checkpoints import Checkpoints
-from learners import checkpoint
-from learners.config import ConfigError, parse_config
+from driver.training.checkpoints import Checkpoints
+from learners.host import checkpoint
+from learners.trainer_config.parse import ConfigError, parse_config
 
 TWO = {
     "behaviors": {
@@ -95,8 +95,8 @@ def test_no_readable_checkpoint_of_a_behavior_is_a_one_line_error(tmp_path):
 def test_the_service_cuts_each_behaviors_rows_at_its_own_time_horizon():
     from driver.options import TrainOptions
     from driver.system import service_config
-    from rollout.horizons import Horizons
-    from rollout.unity import UnityConfig
+    from rollout.collecting.horizons import Horizons
+    from rollout.environment.unity import UnityConfig
 
     settings = service_config(TrainOptions(), parse_config(TWO), UnityConfig(None), False)
     assert settings.horizon == Horizons(64, {"Striker": 16, "Goalie": 40})
@@ -109,7 +109,7 @@ def test_a_threaded_behavior_lets_workers_collect_one_buffer_through_its_updates
     ``--collect-ahead`` if larger; off-policy trainers keep workers busy anyway."""
     from driver.options import TrainOptions
     from driver.system import service_config
-    from rollout.unity import UnityConfig
+    from rollout.environment.unity import UnityConfig
 
     def ahead(behaviors: dict, collect_ahead: int = 0, default: dict | None = None) -> int:
         raw = {"behaviors": behaviors} | ({"default_settings": default} if default else {})
@@ -134,7 +134,7 @@ def spec(*shapes: tuple[int, ...]) -> dict:
 
 def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
     """As mlagents-learn: without a config file, a warning and the defaults."""
-    from driver.behavior_notes import BehaviorNotes
+    from driver.training.behavior_notes import BehaviorNotes
 
     notes = BehaviorNotes(parse_config({}, "<defaults>"), no_graphics=False)
     with caplog.at_level(logging.WARNING):
@@ -150,8 +150,8 @@ def test_a_behavior_the_config_does_not_name_is_reported_once(caplog):
 def test_a_config_file_must_name_every_behavior_or_give_default_settings(caplog):
     """As mlagents-learn: a file without default_settings that lacks the build's behavior
     stops the run, naming what to add; with default_settings, those serve (and we say so)."""
-    from driver.behavior_notes import BehaviorNotes
     from driver.options import TrainingError
+    from driver.training.behavior_notes import BehaviorNotes
 
     named = BehaviorNotes(parse_config(TWO, "two.yaml"), no_graphics=False)
     named.report({NAMES["Striker"]: spec((8,))})  # named: nothing to say
@@ -166,7 +166,7 @@ def test_a_config_file_must_name_every_behavior_or_give_default_settings(caplog)
 
 
 def test_cameras_without_graphics_are_a_warning(caplog):
-    from driver.behavior_notes import BehaviorNotes
+    from driver.training.behavior_notes import BehaviorNotes
 
     with caplog.at_level(logging.WARNING):
         BehaviorNotes(parse_config(TWO), no_graphics=False).report(

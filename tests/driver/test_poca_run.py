@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from driver.options import TrainOptions
-from driver.train import train
-from learners import checkpoint
-from learners.export import export_checkpoint
+from driver.training.train import train
+from learners.host import checkpoint
+from learners.host.export import export_checkpoint
 
 pytestmark = pytest.mark.integration
 

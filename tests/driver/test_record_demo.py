@@ -21,11 +21,11 @@ from mlagents_envs.base_env import (
 
 from batches.specs import spec_to_dict
 from demonstrations import Demonstration, read_demo
-from learners import checkpoint
-from learners.acting import to_unity
-from learners.factory import PolicyFactory
-from learners.policies import ActorCritic
-from rollout.ports import PortAllocator, PortRange
+from learners.acting.factory import PolicyFactory
+from learners.acting.numpy_policy import to_unity
+from learners.host import checkpoint
+from learners.networks.policies import ActorCritic
+from rollout.environment.ports import PortAllocator, PortRange
 from tests.driver.test_cli import cli
 from tests.helpers import free_run
 from unitysim.envs import load

@@ -8,12 +8,12 @@ import io
 from rich.console import Console
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from driver.summaries import Summaries
-from learners.config import parse_config
-from learners.counters import LearnerStats
-from learners.settings import TrainerSettings
-from rollout.service_metrics import ServiceMetrics, Stat, WorkerReports, merge_stats
-from rollout.service_metrics import StatsAggregationMethod as Method  # after rollout's compat
+from driver.training.summaries import Summaries
+from learners.host.counters import LearnerStats
+from learners.trainer_config.parse import parse_config
+from learners.trainer_config.settings import TrainerSettings
+from rollout.serving.metrics import ServiceMetrics, Stat, WorkerReports, merge_stats
+from rollout.serving.metrics import StatsAggregationMethod as Method  # after rollout's compat
 
 
 def every_100(behavior: str) -> TrainerSettings:
@@ -145,7 +145,7 @@ def test_the_extrinsic_reward_is_written_per_episode_with_group_rewards_as_mlage
     """``Policy/Extrinsic Reward``: each episode's rewards with its group rewards (POCA's
     with its groupmates' rewards too), times the strength, over the episodes since the last
     summary; not written for a behavior without the extrinsic signal."""
-    from rollout.collector import BehaviorStats, CollectorMetrics
+    from rollout.collecting.collector import BehaviorStats, CollectorMetrics
 
     config = parse_config(
         {

@@ -22,9 +22,9 @@ import pytest
 import torch
 
 from driver.options import TrainingError, TrainOptions
-from driver.train import train
-from learners import checkpoint
-from learners.export import export_checkpoint
+from driver.training.train import train
+from learners.host import checkpoint
+from learners.host.export import export_checkpoint
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
 from tests.waiting import wait_for
 
@@ -47,7 +47,7 @@ def _drops_per_agent_decision(run_checkpoint: str | None, decisions: int = 300) 
     ends, and the summary before it may be thousands of steps of learning old."""
     from mlagents_envs.base_env import ActionTuple
 
-    from rollout.unity import UnityConfig, UnityInstance
+    from rollout.environment.unity import UnityConfig, UnityInstance
 
     network = None
     if run_checkpoint is not None:
@@ -233,7 +233,7 @@ def test_workers_auto_fills_the_cluster(ray_session, tmp_path):
 
 def test_engine_settings_reach_the_unity_config(tmp_path):
     from driver.system import unity_config
-    from learners.config import parse_config
+    from learners.trainer_config.parse import parse_config
 
     config = parse_config({"engine_settings": {"time_scale": 5, "no_graphics": False}})
     unity = unity_config(TrainOptions(), config, tmp_path)
@@ -241,9 +241,9 @@ def test_engine_settings_reach_the_unity_config(tmp_path):
 
 
 def test_restart_limits_and_timeout_reach_every_unity_instance(tmp_path):
-    from driver.run_dir import load_run_config
     from driver.system import unity_config
-    from rollout.restarts import RestartPolicy
+    from driver.training.planner import load_run_config
+    from rollout.environment.restarts import RestartPolicy
 
     options = TrainOptions(env="unitysim:Basic", restarts_rate_limit_n=3, timeout_wait=7)
     unity = unity_config(options, load_run_config(options), tmp_path)
@@ -254,7 +254,7 @@ def test_two_runs_on_one_node_share_the_port_registry(tmp_path):
     """Two `unity-rollout train` at once, each with its own local Ray: four Unity
     instances, four distinct ports from the one registry, no instance restarted (a port
     clash would have cost a restart, and a quarantined port more)."""
-    from rollout.ports import REGISTRY_VARIABLE, PortAllocator
+    from rollout.environment.ports import REGISTRY_VARIABLE, PortAllocator
 
     registry = tmp_path / "registry"
     marker = uuid.uuid4().hex
@@ -308,14 +308,14 @@ def test_mixed_precision_the_learner_cannot_use_is_said_in_the_driver(
     """The learner runs in a Ray actor whose log does not reach the user: where its CPU
     emulates bfloat16 it computes in float32, and the driver's log says so once; where
     bfloat16 is native, nothing is said and the run trains in it."""
-    from learners.devices import bfloat16_slow
+    from learners.host.devices import bfloat16_slow
 
     why = bfloat16_slow(torch.device("cpu"))
     options = TrainOptions(
         env="unitysim:Basic", results_dir=str(tmp_path), run_id="mixed", max_steps=1_000,
         mixed_precision=True, progress=False, device="cpu",
     )  # fmt: skip
-    with caplog.at_level("WARNING", logger="driver.behavior_notes"):
+    with caplog.at_level("WARNING", logger="driver.training.behavior_notes"):
         result = train(options)
     assert sum(result.steps.values()) >= 1_000
     said = [r.getMessage() for r in caplog.records if "--mixed-precision" in r.getMessage()]

@@ -20,10 +20,10 @@ import yaml
 
 from driver.declaration import TrainingError
 from driver.options import TrainOptions, TuneOptions
-from driver.tune import plan_tune
-from driver.tune_search import with_values
-from learners.config import parse_config
-from rollout.ports import PortAllocator
+from driver.tuning.search import with_values
+from driver.tuning.tune import plan_tune
+from learners.trainer_config.parse import parse_config
+from rollout.environment.ports import PortAllocator
 from tests.helpers import assert_run_gone
 from tests.waiting import poll_until
 
@@ -121,8 +121,8 @@ def test_options_a_tune_cannot_honour_are_errors(tmp_path):
 def test_pbt_pauses_for_turns_only_where_trials_wait_for_them(tmp_path, given, tuning, pauses):
     from ray.tune.schedulers import PopulationBasedTraining
 
-    from driver.tune import _scheduler
-    from driver.tune_pbt import AllAtOncePBT
+    from driver.tuning.pbt import AllAtOncePBT
+    from driver.tuning.tune import _scheduler
 
     plan = planned(tmp_path, {LR: {"loguniform": [1e-4, 1e-2]}}, **tuning)
     plan = dataclasses.replace(plan, options=dataclasses.replace(plan.options, **given))
@@ -207,7 +207,7 @@ def test_pbt_with_four_trials_on_two_cores(tmp_path):
         restores = (run_dir / "restores.jsonl").read_text().splitlines() if pieces[1:] else []
         assert len(restores) == len(pieces) - 1  # every later stretch began at a checkpoint
         sources = [json.loads(line)["from"] for line in restores]
-        # every trial runs at once: none is paused to give another a turn (driver/tune_pbt.py)
+        # every trial runs at once: none is paused to give another a turn (driver/tuning/pbt.py)
         assert run_dir.name not in sources, f"{run_dir.name} paused and resumed: {sources}"
         exploited += len(sources)
     print("stretches begun at another trial's checkpoint:", exploited)

@@ -15,8 +15,8 @@ from gymnasium.utils.env_checker import check_env
 from gymnasium.vector import AutoresetMode
 
 from gymnasium_adapters import AgentSetError, UnityGymEnv, UnityVectorEnv
-from rollout.restarts import RestartPolicy
-from rollout.unity import UnityConfig, UnityError
+from rollout.environment.restarts import RestartPolicy
+from rollout.environment.unity import UnityConfig, UnityError
 from tests.helpers import leak_checked_allocator, wait_gone
 
 pytestmark = pytest.mark.integration

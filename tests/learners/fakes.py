@@ -11,7 +11,7 @@ from tensordict import TensorDict
 
 from batches import keys
 from batches.specs import log_prob_size, spec_to_dict, step_spec
-from learners.devices import Compute
+from learners.host.devices import Compute
 
 # the devices a learner test can run on here: the CPU, and CUDA on a machine that has it
 DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]

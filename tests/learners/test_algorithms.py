@@ -14,13 +14,13 @@ import torch
 
 from batches import keys
 from batches.segment import Segment, Sources
-from learners.config import ConfigError, defaults, parse_config
-from learners.impala import IMPALA
-from learners.learner import CentralLearner, policy_lag
-from learners.modules import add_flat_action
-from learners.policies import ActorCritic
-from learners.ppo import PPO, Steps
-from learners.settings import NetworkSettings
+from learners.algorithms.impala import IMPALA
+from learners.algorithms.ppo import PPO, Steps
+from learners.host.learner import CentralLearner, policy_lag
+from learners.networks.policies import ActorCritic
+from learners.networks.torchrl_views import add_flat_action
+from learners.trainer_config.parse import defaults, parse_config
+from learners.trainer_config.settings import NetworkSettings
 from tests.learners.fakes import segment, vector_spec
 from tests.waiting import wait_for
 
@@ -235,20 +235,6 @@ def test_ppo_trains_on_every_step_by_default_as_mlagents_learn():
     assert ppo.stale_steps == 0 and ppo.store.train_steps == 8
 
 
-def test_max_policy_lag_is_off_unless_given_a_number() -> None:
-    def lag(*value: object) -> int | None:
-        section = {"hyperparameters": {"max_policy_lag": value[0]}} if value else {}
-        return (
-            parse_config({"behaviors": {"A": section}})
-            .behaviors["A"]
-            .hyperparameters.max_policy_lag
-        )
-
-    assert (lag(), lag(None), lag(0), lag(3)) == (None, None, 0, 3)
-    with pytest.raises(ConfigError, match=r"max_policy_lag: expected an integer >= 0"):
-        lag(-1)
-
-
 def test_policy_lag_counts_only_the_behaviors_own_updates():
     # this behavior updated at global versions 1, 3 and 4 (another behavior made 2)
     lag = policy_lag([1, 3, 4], torch.tensor([0, 1, 2, 3, 4]))
@@ -302,7 +288,7 @@ def test_learner_versions_weights_and_checkpoint_round_trip():
 
 
 def test_hybrid_actions_are_shaped_right_and_masks_hold_in_the_torchrl_actor():
-    from learners.modules import FLAT_ACTION, probabilistic_actor
+    from learners.networks.torchrl_views import FLAT_ACTION, probabilistic_actor
 
     spec = vector_spec(continuous=2, branches=(3, 2))
     network = ActorCritic(spec)

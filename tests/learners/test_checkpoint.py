@@ -8,11 +8,11 @@ import sys
 
 import pytest
 
-from learners import checkpoint
+from learners.host import checkpoint
 
 KILLER = """
 import os, random, signal, sys, time, torch
-from learners import checkpoint
+from learners.host import checkpoint
 folder, rng = sys.argv[1], random.Random(7)
 state = {"step": 0, "version": 0, "behaviors": {"B": {"steps": 0, "w": torch.randn(4_000_000)}}}
 for kill in range(10):  # a child saves without pause; killed at a random moment after its first
@@ -50,3 +50,19 @@ def test_an_unreadable_file_is_named(tmp_path):
     path.write_bytes(b"PK\x03\x04 cut short")
     with pytest.raises(checkpoint.CheckpointError, match=f"{path}: unreadable checkpoint"):
         checkpoint.read(path)
+
+
+def test_a_checkpoint_of_another_format_is_refused_in_one_line_naming_what_to_do(tmp_path):
+    """The layout's version refuses what it cannot read, before any state is loaded: a file
+    of format 1 lacks SAC's gradient counts, self-play's keys and the memory settings."""
+    import torch
+
+    path = tmp_path / "step-0000000001.pt"
+    torch.save({"format": checkpoint.FORMAT - 1, "step": 1, "version": 1, "behaviors": {}}, path)
+    with pytest.raises(checkpoint.CheckpointError) as caught:
+        checkpoint.read(path)
+    message = str(caught.value)
+    assert "\n" not in message and message.startswith(f"{path}: a checkpoint of format 1")
+    assert "--run-id" in message
+    checkpoint.save(path, {"step": 2, "version": 2, "behaviors": {}})
+    assert checkpoint.read(path)["format"] == checkpoint.FORMAT

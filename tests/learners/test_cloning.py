@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from demonstrations import Demonstration, DemoStep, expert_steps, write_demo
-from learners.cloning import REPORT, BehavioralCloning
-from learners.config import ConfigError, parse_config
-from learners.learner import CentralLearner
-from learners.policies import ActorCritic
-from learners.settings import (
+from learners.host.learner import CentralLearner
+from learners.networks.policies import ActorCritic
+from learners.reward_signals.cloning import REPORT, BehavioralCloning
+from learners.trainer_config.parse import ConfigError, parse_config
+from learners.trainer_config.settings import (
     BehavioralCloningSettings,
     Hyperparameters,
     MemorySettings,

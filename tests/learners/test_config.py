@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from batches.parameters import UNSEEDED, Constant, Uniform
-from learners.config import (
+from learners.trainer_config.parse import (
     CONFIG_DIR,
     ConfigError,
     config_for_env,
@@ -18,7 +18,7 @@ from learners.config import (
     load_config,
     parse_config,
 )
-from learners.settings import NetworkSettings, RunConfig
+from learners.trainer_config.settings import NetworkSettings, RunConfig
 
 # ML-Agents' config/ppo/3DBall.yaml, as shipped with ML-Agents
 MLAGENTS_PPO_3DBALL = """\
@@ -340,7 +340,7 @@ env_settings: {num_envs: 4}
 checkpoint_settings: {run_id: x}
 torch_settings: {device: cpu}
 """
-    with caplog.at_level(logging.WARNING, logger="learners.config"):
+    with caplog.at_level(logging.WARNING, logger="learners.trainer_config.parse"):
         config = parse(text)
     extrinsic_network = "default_settings.reward_signals.extrinsic.network_settings"
     assert set(config.unsupported) == {extrinsic_network}
@@ -355,7 +355,7 @@ torch_settings: {device: cpu}
     }
     assert dict(config.engine) == {"time_scale": 20.0, "width": 84, "no_graphics": True}
     assert config.for_behavior("Pyramids").gamma == 0.99
-    assert config.for_behavior("Pyramids").init_path == "results/old"  # driver/run_dir.py
+    assert config.for_behavior("Pyramids").init_path == "results/old"  # driver/training/planner.py
     cloning = config.for_behavior("Pyramids").behavioral_cloning
     assert cloning is not None and cloning.demo_path == str(Path("x.demo").resolve())
     assert config.for_behavior("Pyramids").network_settings.vis_encode_type == "resnet"
@@ -393,3 +393,17 @@ def test_load_config_file_errors(tmp_path: Path) -> None:
     good = tmp_path / "good.yaml"
     good.write_text(MLAGENTS_PPO_3DBALL)
     assert load_config(str(good)).source == str(good)
+
+
+def test_max_policy_lag_is_off_unless_given_a_number() -> None:
+    def lag(*value: object) -> int | None:
+        section = {"hyperparameters": {"max_policy_lag": value[0]}} if value else {}
+        return (
+            parse_config({"behaviors": {"A": section}})
+            .behaviors["A"]
+            .hyperparameters.max_policy_lag
+        )
+
+    assert (lag(), lag(None), lag(0), lag(3)) == (None, None, 0, 3)
+    with pytest.raises(ConfigError, match=r"max_policy_lag: expected an integer >= 0"):
+        lag(-1)

@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from batches.parameters import UNSEEDED, Constant, Gaussian, MultiRangeUniform, Uniform
-from learners.config import load_config, parse_config
-from learners.config_keys import ConfigError
+from learners.trainer_config.keys import ConfigError
+from learners.trainer_config.parse import load_config, parse_config
 
 ANCHORS = Path(__file__).resolve().parents[1] / "mlagents_configs" / "ppo"
 

@@ -14,10 +14,10 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec
 
 from batches import keys
-from learners import devices
-from learners.config import ConfigError, parse_config
-from learners.devices import Compute, DeviceError, check_device, learner_device, to_cpu
-from learners.learner import CentralLearner
+from learners.host import devices
+from learners.host.devices import Compute, DeviceError, check_device, learner_device, to_cpu
+from learners.host.learner import CentralLearner
+from learners.trainer_config.parse import ConfigError, parse_config
 from tests.learners.fakes import DEVICES, IMAGE, VECTOR, compute_of, segment
 
 
@@ -204,7 +204,7 @@ def test_mixed_precision_updates_every_trainer_and_encoder(trainer, actions, enc
     from mlagents_envs.base_env import ObservationType as Obs
 
     pixels = (DimensionProperty.NONE, *(DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,) * 2)
-    from learners.encoders import MIN_SIZE
+    from learners.networks.encoders import MIN_SIZE
 
     side = MIN_SIZE[encoder]  # the smallest image each encoder takes: the cheapest update
     camera = ObservationSpec((3, side, side), pixels, Obs.DEFAULT, "camera")
@@ -226,7 +226,7 @@ def test_usable_cores_are_the_affinity_within_the_containers_cpu_quota(tmp_path)
     """As mlagents-learn's cpu_utils: a pod limited to 2 CPUs on a big node takes 2."""
     import os
 
-    from learners.devices import usable_cores
+    from learners.host.devices import usable_cores
 
     affinity = len(os.sched_getaffinity(0))
     assert usable_cores(tmp_path) == affinity  # no cgroup files: the affinity

@@ -11,14 +11,14 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 from torch import nn
 
-from learners.acting import encoder_width, trunk_input_width
-from learners.config_keys import VIS_ENCODE_TYPES
-from learners.encoders import MIN_SIZE, ImageTooSmall, ResidualBlock, visual_encoder
-from learners.factory import PolicyFactory
-from learners.modules import ActionDistribution
-from learners.policies import ActorCritic
-from learners.q_networks import QNetwork
-from learners.settings import NetworkSettings
+from learners.acting.factory import PolicyFactory
+from learners.acting.numpy_policy import encoder_width, trunk_input_width
+from learners.networks.encoders import MIN_SIZE, ImageTooSmall, ResidualBlock, visual_encoder
+from learners.networks.policies import ActorCritic
+from learners.networks.q_networks import QNetwork
+from learners.networks.torchrl_views import ActionDistribution
+from learners.trainer_config.keys import VIS_ENCODE_TYPES
+from learners.trainer_config.settings import NetworkSettings
 from tests.learners.fakes import IMAGE, VECTOR
 
 

@@ -1,4 +1,4 @@
-"""Per-episode sums of the learner's own rewards (``learners/episode_sums.py``), as
+"""Per-episode sums of the learner's own rewards (``learners/reward_signals/episode_sums.py``), as
 ML-Agents reports ``Policy/<Signal> Reward``: one figure per finished episode, however many
 updates and pieces it spans."""
 
@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from batches import keys
-from learners.config import parse_config
-from learners.episode_sums import EpisodeSums
-from learners.learner import make_algorithm
-from learners.policies import ActorCritic
+from learners.host.learner import make_algorithm
+from learners.networks.policies import ActorCritic
+from learners.reward_signals.episode_sums import EpisodeSums
+from learners.trainer_config.parse import parse_config
 from tests.learners.fakes import segment, vector_spec
 
 

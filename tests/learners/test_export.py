@@ -14,13 +14,13 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
 from driver import cli
-from learners import checkpoint
-from learners.acting import ACTION_CLIP
-from learners.checkpoint import network_settings_dict, spec_to_dict
-from learners.config_keys import VIS_ENCODE_TYPES
-from learners.export import export_checkpoint, export_onnx
-from learners.policies import ActorCritic
-from learners.settings import NetworkSettings
+from learners.acting.numpy_policy import ACTION_CLIP
+from learners.host import checkpoint
+from learners.host.checkpoint import network_settings_dict, spec_to_dict
+from learners.host.export import export_checkpoint, export_onnx
+from learners.networks.policies import ActorCritic
+from learners.trainer_config.keys import VIS_ENCODE_TYPES
+from learners.trainer_config.settings import NetworkSettings
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 
 SPECS = {

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from learners.encoders import MIN_SIZE, visual_encoder
-from learners.image_acting import NumpyImageEncoder, initial_encoder_weights
+from learners.acting.numpy_images import NumpyImageEncoder, initial_encoder_weights
+from learners.networks.encoders import MIN_SIZE, visual_encoder
 
 
 @pytest.mark.parametrize("encoder_type", list(MIN_SIZE))

@@ -10,14 +10,14 @@ import pytest
 import torch
 
 from batches.expert_steps import ExpertSteps
-from learners.config import ConfigError, parse_config
-from learners.devices import Compute
-from learners.gail import GAIL
-from learners.intrinsic import RND, Curiosity
-from learners.policies import ActorCritic
-from learners.ppo import PPO
-from learners.settings import Hyperparameters, NetworkSettings, RewardSignalSettings
-from learners.signal_base import Transitions
+from learners.algorithms.ppo import PPO
+from learners.host.devices import Compute
+from learners.networks.policies import ActorCritic
+from learners.reward_signals.base import Transitions
+from learners.reward_signals.gail import GAIL
+from learners.reward_signals.intrinsic import RND, Curiosity
+from learners.trainer_config.parse import ConfigError, parse_config
+from learners.trainer_config.settings import Hyperparameters, NetworkSettings, RewardSignalSettings
 from tests.learners.fakes import DEVICES, compute_of, segment, vector_spec
 
 SMALL = NetworkSettings(hidden_units=32, num_layers=2)
@@ -43,7 +43,9 @@ def test_signals_of_other_trainers_are_reported_and_a_bad_key_is_an_error():
     poca = config({"extrinsic": {}, "curiosity": {}}, trainer="poca")
     assert poca.unsupported == ("behaviors.B.reward_signals.curiosity",)
     assert poca.behaviors["B"].reward_signals == ()
-    sac = config({"extrinsic": {}, "curiosity": {}}, trainer="sac")  # learners/sac_signals.py
+    sac = config(
+        {"extrinsic": {}, "curiosity": {}}, trainer="sac"
+    )  # learners/reward_signals/sac_streams.py
     assert sac.unsupported == () and sac.behaviors["B"].reward_signals[0].kind == "curiosity"
     with pytest.raises(ConfigError, match=r"reward_signals.rnd.strenght: unknown key"):
         config({"rnd": {"strenght": 0.1}})

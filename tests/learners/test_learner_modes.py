@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from learners.config import parse_config
-from learners.learner import CentralLearner
+from learners.host.learner import CentralLearner
+from learners.trainer_config.parse import parse_config
 from tests.learners.fakes import segment, vector_spec
 
 CONFIG = parse_config(

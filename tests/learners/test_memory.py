@@ -12,12 +12,17 @@ import torch
 from mlagents_envs.base_env import BehaviorSpec
 
 from batches import keys
-from learners.acting import NumpyActor
-from learners.config import ConfigError, load_config
-from learners.policies import ActorCritic, numpy_state
-from learners.ppo import PPO
-from learners.recurrent_ppo import RecurrentPPO, sequences
-from learners.settings import Hyperparameters, MemorySettings, NetworkSettings, TrainerSettings
+from learners.acting.numpy_policy import NumpyActor
+from learners.algorithms.ppo import PPO
+from learners.algorithms.recurrent_ppo import RecurrentPPO, sequences
+from learners.networks.policies import ActorCritic, numpy_state
+from learners.trainer_config.parse import ConfigError, load_config
+from learners.trainer_config.settings import (
+    Hyperparameters,
+    MemorySettings,
+    NetworkSettings,
+    TrainerSettings,
+)
 from tests.learners.fakes import segment, vector_spec
 
 ANCHORS = Path(__file__).resolve().parents[3] / "shared" / "anchors" / "mlagents-configs"
@@ -277,7 +282,7 @@ def test_the_onnx_export_carries_the_memory_in_and_out(tmp_path, squashed):
     import onnx
     import onnxruntime as ort
 
-    from learners.export import export_onnx
+    from learners.host.export import export_onnx
 
     spec = vector_spec(6, 2, (3,))
     network = memory_network(spec, tanh_squash=squashed, conditional_sigma=squashed)
@@ -314,7 +319,7 @@ def test_record_demo_acts_with_each_agents_memory():
     the agent's memory of its last decision, from zeros again after its episode ended."""
     from mlagents_envs.base_env import DecisionSteps
 
-    from driver.demo_recorder import PolicyActor
+    from driver.recording.recorder import PolicyActor
 
     spec = vector_spec(6, 0, (3,))
     network = memory_network(spec)
@@ -348,7 +353,7 @@ def test_record_demo_acts_with_each_agents_memory():
 
 
 def test_agent_memories_are_bounded_and_forgotten():
-    from driver.demo_recorder import AgentMemories
+    from driver.recording.recorder import AgentMemories
 
     memories = AgentMemories(2, kept=3)
     memories.put(np.array([1, 2, 3]), np.ones((3, 2), np.float32))
@@ -363,8 +368,8 @@ def test_agent_memories_are_bounded_and_forgotten():
 def test_the_learner_trains_memory_with_reward_signals(tmp_path):
     """A behavior with memory and an intrinsic signal: RecurrentPPO, the signal's value head
     on the critic's LSTM."""
-    from learners.config import load_config
-    from learners.learner import CentralLearner
+    from learners.host.learner import CentralLearner
+    from learners.trainer_config.parse import load_config
 
     path = write(tmp_path, "      memory:\n        memory_size: 16\n        sequence_length: 4\n")
     text = path.read_text() + (

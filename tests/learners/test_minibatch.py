@@ -8,12 +8,17 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, DimensionProperty, ObservationSpec
 from mlagents_envs.base_env import ObservationType as Obs
 
-from learners.devices import Compute
-from learners.encoders import visual_encoder
-from learners.minibatch import adam, load_optimizer, plain_learning_rates, set_learning_rate
-from learners.policies import ActorCritic
-from learners.ppo import PPO
-from learners.settings import NetworkSettings
+from learners.algorithms.minibatch import (
+    adam,
+    load_optimizer,
+    plain_learning_rates,
+    set_learning_rate,
+)
+from learners.algorithms.ppo import PPO
+from learners.host.devices import Compute
+from learners.networks.encoders import visual_encoder
+from learners.networks.policies import ActorCritic
+from learners.trainer_config.settings import NetworkSettings
 from tests.learners.fakes import VECTOR, segment
 from tests.learners.test_algorithms import settings
 

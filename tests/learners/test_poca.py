@@ -13,15 +13,15 @@ import torch
 from mlagents_envs.base_env import DecisionSteps, TerminalSteps
 
 from batches import keys
-from learners.config import defaults
-from learners.devices import to_cpu
-from learners.group_critic import GroupCritic
-from learners.poca import POCA
-from learners.policies import ActorCritic
-from learners.settings import NetworkSettings
-from learners.trajectory_store import TrajectoryStore
-from rollout.decisions import Decisions
-from rollout.segments import SegmentBuilder
+from learners.algorithms.poca import POCA
+from learners.algorithms.trajectory_store import TrajectoryStore
+from learners.host.devices import to_cpu
+from learners.networks.group_critic import GroupCritic
+from learners.networks.policies import ActorCritic
+from learners.trainer_config.parse import defaults
+from learners.trainer_config.settings import NetworkSettings
+from rollout.collecting.decisions import Decisions
+from rollout.collecting.segments import SegmentBuilder
 from tests.learners.fakes import DEVICES, compute_of, vector_spec
 
 SPEC = vector_spec(3, branches=(2,))

@@ -8,11 +8,11 @@ import pytest
 import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
-from learners.acting import NumpyActor, acts_in_numpy, encoder_width
-from learners.factory import PolicyFactory
-from learners.policies import ActorCritic, TorchActor, numpy_state
-from learners.sensors import RunningNorm, SensorEncoder
-from learners.settings import NetworkSettings
+from learners.acting.factory import PolicyFactory
+from learners.acting.numpy_policy import NumpyActor, acts_in_numpy, encoder_width
+from learners.networks.policies import ActorCritic, TorchActor, numpy_state
+from learners.networks.sensors import RunningNorm, SensorEncoder
+from learners.trainer_config.settings import NetworkSettings
 from tests.learners.fakes import GRID, IMAGE, VECTOR
 
 

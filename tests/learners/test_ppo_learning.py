@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from rollout.ports import PortRange
+from rollout.environment.ports import PortRange
 from tests.helpers import train_in_process
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"

@@ -12,12 +12,12 @@ import pytest
 import torch
 
 from batches import keys
-from learners.config import defaults, load_config
-from learners.learner import make_algorithm
-from learners.policies import ActorCritic
-from learners.recurrent_sac import VALID, RecurrentSAC
-from learners.sac import SAC
-from learners.settings import MemorySettings, NetworkSettings, RewardSignalSettings
+from learners.algorithms.recurrent_sac import VALID, RecurrentSAC
+from learners.algorithms.sac import SAC
+from learners.host.learner import make_algorithm
+from learners.networks.policies import ActorCritic
+from learners.trainer_config.parse import defaults, load_config
+from learners.trainer_config.settings import MemorySettings, NetworkSettings, RewardSignalSettings
 from tests.learners.fakes import segment, vector_spec
 from tests.learners.test_memory import CUE_STEPS, learn_recall
 

@@ -1,4 +1,4 @@
-"""The learner's Ray host without Ray (``learners.remote.LearnerHost``): while its
+"""The learner's Ray host without Ray (``learners.host.remote.LearnerHost``): while its
 process still loads torch it already takes segments, counts them for the driver's
 summaries, and hands them to the learner once, in order."""
 
@@ -10,8 +10,8 @@ import threading
 import pytest
 
 from batches.specs import spec_to_dict
-from learners.config import parse_config
-from learners.remote import BUILD_NICENESS, LearnerHost
+from learners.host.remote import BUILD_NICENESS, LearnerHost
+from learners.trainer_config.parse import parse_config
 from tests.learners.fakes import segment, vector_spec
 from tests.learners.test_algorithms import as_segment
 from tests.waiting import wait_for

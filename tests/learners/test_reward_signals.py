@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from learners.config import parse_config
+from learners.trainer_config.parse import parse_config
 
 GAIL = {"gail": {"strength": 1.0, "demo_path": "x.demo"}}
 

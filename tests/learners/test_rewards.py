@@ -9,12 +9,12 @@ import dataclasses
 import torch
 
 from batches import keys
-from learners.config import defaults
-from learners.factory import network_settings
-from learners.impala import IMPALA
-from learners.policies import ActorCritic
-from learners.ppo import PPO
-from learners.sac import SAC
+from learners.acting.factory import network_settings
+from learners.algorithms.impala import IMPALA
+from learners.algorithms.ppo import PPO
+from learners.algorithms.sac import SAC
+from learners.networks.policies import ActorCritic
+from learners.trainer_config.parse import defaults
 from tests.learners.fakes import segment, vector_spec
 
 SPEC = vector_spec(4, continuous=1)

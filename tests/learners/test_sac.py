@@ -14,14 +14,14 @@ import pytest
 import torch
 
 from batches import keys
-from learners.acting import NumpyActor
-from learners.config import defaults, load_config
-from learners.factory import policy_factory
-from learners.policies import ActorCritic, numpy_state
-from learners.sac import MAX_GRADIENT_STEPS, SAC
-from learners.sac_terms import masked_logits, next_mask, taken
-from learners.settings import NetworkSettings
-from rollout.ports import PortRange
+from learners.acting.factory import policy_factory
+from learners.acting.numpy_policy import NumpyActor
+from learners.algorithms.sac import MAX_GRADIENT_STEPS, SAC
+from learners.algorithms.sac_terms import masked_logits, next_mask, taken
+from learners.networks.policies import ActorCritic, numpy_state
+from learners.trainer_config.parse import defaults, load_config
+from learners.trainer_config.settings import NetworkSettings
+from rollout.environment.ports import PortRange
 from tests.helpers import train_in_process
 from tests.learners.fakes import segment, vector_spec
 
@@ -285,7 +285,7 @@ def torchrl_loss(sac: SAC):
     from torchrl.modules import TanhNormal
     from torchrl.objectives import DiscreteSACLoss, SACLoss
 
-    from learners.modules import PolicyParams, TensorModule, obs_keys
+    from learners.networks.torchrl_views import PolicyParams, TensorModule, obs_keys
 
     obs = obs_keys(sac.network)
     net = sac.network

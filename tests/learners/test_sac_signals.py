@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from batches import keys
-from learners.config import defaults
-from learners.policies import ActorCritic
-from learners.sac import SAC
-from learners.settings import NetworkSettings, RewardSignalSettings
+from learners.algorithms.sac import SAC
+from learners.networks.policies import ActorCritic
+from learners.trainer_config.parse import defaults
+from learners.trainer_config.settings import NetworkSettings, RewardSignalSettings
 from tests.learners.fakes import segment, vector_spec
 
 SMALL = NetworkSettings(hidden_units=16, num_layers=1)

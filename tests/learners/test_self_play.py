@@ -12,10 +12,10 @@ import torch
 
 from batches import keys
 from batches.contracts import Snapshot
-from learners.config import ConfigError, parse_config
-from learners.learner import CentralLearner
-from learners.self_play import learning_steps
-from learners.settings import SelfPlaySettings
+from learners.algorithms.self_play import learning_steps
+from learners.host.learner import CentralLearner
+from learners.trainer_config.parse import ConfigError, parse_config
+from learners.trainer_config.settings import SelfPlaySettings
 from tests.learners.fakes import segment, vector_spec
 
 SPEC = vector_spec(4, branches=(3,))

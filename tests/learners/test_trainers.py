@@ -1,5 +1,5 @@
-"""One registry of trainer types (learners/trainers.py): a new trainer is one entry there
-and its algorithm module, and the config, the acting policy, the learner and the driver
+"""One registry of trainer types (learners/trainer_config/trainer_types.py): a new trainer is one
+entry there and its algorithm module, and the config, the acting policy, the learner and the driver
 all take it from that entry."""
 
 from __future__ import annotations
@@ -8,12 +8,12 @@ from dataclasses import dataclass
 
 import pytest
 
-from learners.config import ConfigError, parse_config
-from learners.config_keys import POSITIVE, SHARED
-from learners.factory import policy_factory
-from learners.learner import make_algorithm
-from learners.settings import Hyperparameters
-from learners.trainers import TRAINERS, TrainerType
+from learners.acting.factory import policy_factory
+from learners.host.learner import make_algorithm
+from learners.trainer_config.keys import POSITIVE, SHARED
+from learners.trainer_config.parse import ConfigError, parse_config
+from learners.trainer_config.settings import Hyperparameters
+from learners.trainer_config.trainer_types import TRAINERS, TrainerType
 
 
 @dataclass

@@ -11,13 +11,13 @@ from mlagents_envs.base_env import ObservationType as Obs
 from torchrl.objectives.value import GAE
 
 from batches import keys
-from learners.config import parse_config
-from learners.learner import CentralLearner
-from learners.modules import add_flat_action, value_operator
-from learners.policies import ActorCritic
-from learners.ppo import PPO
-from learners.settings import NetworkSettings
-from learners.trajectory_store import TrajectoryStore
+from learners.algorithms.ppo import PPO
+from learners.algorithms.trajectory_store import TrajectoryStore
+from learners.host.learner import CentralLearner
+from learners.networks.policies import ActorCritic
+from learners.networks.torchrl_views import add_flat_action, value_operator
+from learners.trainer_config.parse import parse_config
+from learners.trainer_config.settings import NetworkSettings
 from tests.learners.fakes import IMAGE, segment, vector_spec
 from tests.learners.test_algorithms import settings
 

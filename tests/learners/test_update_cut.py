@@ -7,9 +7,9 @@ from __future__ import annotations
 import torch
 
 from batches import keys
-from learners.config import parse_config
-from learners.learner import CentralLearner
-from learners.update_cut import update_cut
+from learners.algorithms.update_cut import update_cut
+from learners.host.learner import CentralLearner
+from learners.trainer_config.parse import parse_config
 from tests.learners.fakes import segment, vector_spec
 
 SPEC = vector_spec(branches=(3,))

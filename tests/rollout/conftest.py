@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from rollout.ports import PortAllocator
+from rollout.environment.ports import PortAllocator
 from tests.rollout.workers import PORTS
 
 

@@ -15,11 +15,11 @@ from tensordict import TensorDict
 from batches import keys
 from batches.parameters import Constant
 from batches.specs import spec_from_dict, step_spec
-from learners.factory import actor_factory
-from rollout.collector import NO_AGENT_STEPS, Collector
-from rollout.horizons import Horizons
-from rollout.restarts import RestartPolicy
-from rollout.unity import UnityConfig, UnityError, UnityStartError
+from learners.acting.factory import actor_factory
+from rollout.collecting.collector import NO_AGENT_STEPS, Collector
+from rollout.collecting.horizons import Horizons
+from rollout.environment.restarts import RestartPolicy
+from rollout.environment.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import leak_checked_allocator, trajectories
 
 pytestmark = pytest.mark.integration
@@ -355,8 +355,8 @@ def test_a_policy_with_memory_carries_each_agents_memory_across_gaps_and_resets_
     """Echo's agents skip decisions, end episodes and switch behaviors: each step stores the
     memory its decision read; an episode's first step reads zeros, and every later one the
     memory the agent's previous decision left (recomputed here with the same actor)."""
-    from learners.factory import PolicyFactory
-    from learners.settings import MemorySettings, NetworkSettings
+    from learners.acting.factory import PolicyFactory
+    from learners.trainer_config.settings import MemorySettings, NetworkSettings
 
     factory = PolicyFactory(default=NetworkSettings(hidden_units=8, memory=MemorySettings(8, 4)))
     collector = Collector(

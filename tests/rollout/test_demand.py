@@ -1,16 +1,16 @@
 """How the service sizes collects against an on-policy learner's demand (``_pump``,
-``rollout/demand.py``), with stand-in worker handles that record what they were asked: no
+``rollout/serving/demand.py``), with stand-in worker handles that record what they were asked: no
 Ray, no Unity."""
 
 from __future__ import annotations
 
 import pytest
 
-from learners.factory import actor_factory
-from rollout.demand import Demand
-from rollout.ledger import Counts
-from rollout.service import RolloutService, ServiceConfig
-from rollout.unity import UnityConfig
+from learners.acting.factory import actor_factory
+from rollout.collecting.ledger import Counts
+from rollout.environment.unity import UnityConfig
+from rollout.serving.demand import Demand
+from rollout.serving.service import RolloutService, ServiceConfig
 
 
 class _Collect:
@@ -121,7 +121,7 @@ def test_the_learners_newest_answer_is_its_demand_whatever_order_ray_reports(
     """Answers taken oldest first: a consumer that emptied the learner's queue asked again,
     and that newer answer (a demand again) must not be overwritten by the older one (none:
     full), or every worker would wait for ever."""
-    import rollout.service as service_module
+    import rollout.serving.service as service_module
 
     @ray_session.remote(num_cpus=0)
     class Answers:

@@ -8,8 +8,8 @@ from mlagents_envs.base_env import DecisionSteps, TerminalSteps
 
 from batches import keys
 from batches.segment import Segment
-from rollout.decisions import Decisions
-from rollout.segments import SegmentBuilder
+from rollout.collecting.decisions import Decisions
+from rollout.collecting.segments import SegmentBuilder
 from tests.learners.fakes import vector_spec
 
 SPEC = vector_spec(2, continuous=1)

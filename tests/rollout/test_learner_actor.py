@@ -1,12 +1,12 @@
-"""The learner as a Ray actor (``learners.remote.learner_actor``): the driver's status
+"""The learner as a Ray actor (``learners.host.remote.learner_actor``): the driver's status
 calls answer while an update runs."""
 
 from __future__ import annotations
 
 import pytest
 
-from learners.config import parse_config
-from learners.remote import learner_actor
+from learners.host.remote import learner_actor
+from learners.trainer_config.parse import parse_config
 from tests.learners.fakes import segment, vector_spec
 from tests.waiting import wait_for
 

@@ -1,9 +1,10 @@
-"""The sample ledger's books (rollout.ledger), without Ray: produced = delivered + dropped,
-each drop with its reason, across a worker's restart, a lesson's reset and the run's end."""
+"""The sample ledger's books (rollout.collecting.ledger), without Ray: produced = delivered +
+dropped, each drop with its reason, across a worker's restart, a lesson's reset and the run's
+end."""
 
 from __future__ import annotations
 
-from rollout.ledger import (
+from rollout.collecting.ledger import (
     LEARNER_RESTART,
     LESSON_RESET,
     PLAYER_FAILURE,

@@ -1,12 +1,12 @@
-"""Elastic membership's decisions (rollout/membership.py), on a cluster size set by the
+"""Elastic membership's decisions (rollout/serving/membership.py), on a cluster size set by the
 test: no Ray."""
 
 from __future__ import annotations
 
 import pytest
 
-from rollout import membership
-from rollout.membership import Membership
+from rollout.serving import membership
+from rollout.serving.membership import Membership
 
 
 @pytest.fixture

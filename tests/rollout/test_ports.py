@@ -13,7 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from rollout.ports import PortAllocator, PortError, PortRange, default_range, ephemeral_range
+from rollout.environment.ports import (
+    PortAllocator,
+    PortError,
+    PortRange,
+    default_range,
+    ephemeral_range,
+)
 from tests.waiting import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -73,7 +79,7 @@ def test_port_held_by_a_foreign_listener_is_skipped(tmp_path):
 def test_lease_of_a_killed_owner_is_reclaimed(tmp_path):
     script = (
         "import sys\n"
-        "from rollout.ports import PortAllocator, PortRange\n"
+        "from rollout.environment.ports import PortAllocator, PortRange\n"
         "allocator = PortAllocator(PortRange(23600, 23609), sys.argv[1])\n"
         "print(allocator.lease(), flush=True)\n"
         "sys.stdin.read()\n"  # it holds the lease until killed (or the test's end)

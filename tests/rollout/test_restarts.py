@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import pytest
 
-from learners.factory import actor_factory
-from rollout.collector import Collector
-from rollout.ports import PortAllocator, PortRange
-from rollout.restarts import RestartBudget, RestartPolicy, RestartRefused
-from rollout.unity import UnityConfig, UnityError, UnityStartError
+from learners.acting.factory import actor_factory
+from rollout.collecting.collector import Collector
+from rollout.environment.ports import PortAllocator, PortRange
+from rollout.environment.restarts import RestartBudget, RestartPolicy, RestartRefused
+from rollout.environment.unity import UnityConfig, UnityError, UnityStartError
 from tests.helpers import wait_gone
 
 

@@ -70,8 +70,8 @@ def test_png_sensors_are_kept_as_exact_uint8_and_vectors_as_float32():
         TerminalSteps,
     )
 
-    from rollout.decisions import Decisions
-    from rollout.segments import SegmentBuilder
+    from rollout.collecting.decisions import Decisions
+    from rollout.collecting.segments import SegmentBuilder
 
     plain = (DimensionProperty.NONE,)
     image = (
@@ -127,8 +127,8 @@ def test_a_row_cut_at_the_horizon_is_marked_cut_and_an_interrupted_end_is_not():
     episode going on (``("next", "cut")``), so per-episode figures end at the other."""
     from mlagents_envs.base_env import DecisionSteps, TerminalSteps
 
-    from rollout.decisions import Decisions
-    from rollout.segments import SegmentBuilder
+    from rollout.collecting.decisions import Decisions
+    from rollout.collecting.segments import SegmentBuilder
 
     spec = vector_spec(2, branches=(3,))
     builder = SegmentBuilder("B?team=0", spec, horizon=3)

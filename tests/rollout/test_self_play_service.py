@@ -12,12 +12,12 @@ from itertools import pairwise
 
 import pytest
 
-from learners.config import parse_config
-from learners.factory import policy_factory
-from learners.remote import learner_actor
-from rollout.ports import PortAllocator
-from rollout.service import RolloutService
-from rollout.unity import UnityConfig
+from learners.acting.factory import policy_factory
+from learners.host.remote import learner_actor
+from learners.trainer_config.parse import parse_config
+from rollout.environment.ports import PortAllocator
+from rollout.environment.unity import UnityConfig
+from rollout.serving.service import RolloutService
 from tests.helpers import wait_gone
 from tests.rollout.workers import PORTS, service_config
 from tests.waiting import poll_until

@@ -13,17 +13,17 @@ import pytest
 import ray
 from ray.exceptions import ActorUnavailableError, RayTaskError
 
-from driver.counting_learner import CountingLearner
-from learners.factory import actor_factory
-from rollout.restarts import RestartPolicy
-from rollout.service import (
+from driver.training.counting_learner import CountingLearner
+from learners.acting.factory import actor_factory
+from rollout.collecting.worker import RolloutWorker, WeightsLost
+from rollout.environment.restarts import RestartPolicy
+from rollout.environment.unity import UnityConfig
+from rollout.serving.service import (
     LearnerDied,
     RolloutError,
     RolloutService,
     ServiceConfig,
 )
-from rollout.unity import UnityConfig
-from rollout.worker import RolloutWorker, WeightsLost
 from testkit.synthetic import SyntheticWorker
 from tests.helpers import wait_gone
 from tests.rollout.workers import PORTS, service_config, stop_worker
@@ -74,7 +74,7 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
         rows = service.demand.rows(service.live())
     ray_session.kill(learner)
     # what the workers held in rows, as their collects reported it: within a buffer, so
-    # the gate holds (rollout/demand.py)
+    # the gate holds (rollout/serving/demand.py)
     assert 0 < rows <= workers * 12 * (horizon - 1) < demand
     # A collect stops after the exchange that reaches its share (one exchange of 3DBall's
     # 12 agents emits at most 12 rows of `horizon`), and rows in progress at a version

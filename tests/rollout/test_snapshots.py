@@ -13,11 +13,11 @@ from mlagents_envs.base_env import BehaviorSpec
 
 from batches.contracts import Snapshot
 from batches.specs import spec_to_dict
-from learners.config import parse_config
-from learners.factory import PolicyFactory, policy_factory
-from learners.remote import learner_actor
-from rollout.collector import SNAPSHOTS_KEPT, Collector
-from rollout.unity import UnityConfig
+from learners.acting.factory import PolicyFactory, policy_factory
+from learners.host.remote import learner_actor
+from learners.trainer_config.parse import parse_config
+from rollout.collecting.collector import SNAPSHOTS_KEPT, Collector
+from rollout.environment.unity import UnityConfig
 from tests.helpers import leak_checked_allocator
 from tests.learners.fakes import segment, vector_spec
 

@@ -9,9 +9,9 @@ from types import SimpleNamespace
 import pytest
 from ray.exceptions import ActorDiedError, ActorUnavailableError, RayTaskError
 
-from rollout.service_config import LearnerDied, RolloutError, last_line
-from rollout.supervision import WorkerSupervision
-from rollout.worker import WeightsLost
+from rollout.collecting.worker import WeightsLost
+from rollout.serving.config import LearnerDied, RolloutError, last_line
+from rollout.serving.supervision import WorkerSupervision
 
 
 def supervisor(max_restarts: int) -> WorkerSupervision:

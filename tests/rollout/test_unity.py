@@ -1,5 +1,5 @@
-"""rollout.unity: a leased loopback-only port, a player tied to its owner, clear errors for
-bad builds, restarts on a fresh port after a crash."""
+"""rollout.environment.unity: a leased loopback-only port, a player tied to its owner, clear errors
+for bad builds, restarts on a fresh port after a crash."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ import numpy as np
 import psutil
 import pytest
 
-from rollout.ports import PortAllocator, PortRange
-from rollout.restarts import RestartPolicy
-from rollout.unity import (
+from rollout.environment.ports import PortAllocator, PortRange
+from rollout.environment.restarts import RestartPolicy
+from rollout.environment.unity import (
     RECOVERABLE,
     UnityConfig,
     UnityError,
@@ -121,8 +121,8 @@ def test_restart_budget_is_enforced(allocator):
 
 OWNER = """
 import sys
-from rollout.ports import PortAllocator, PortRange
-from rollout.unity import UnityConfig, UnityInstance
+from rollout.environment.ports import PortAllocator, PortRange
+from rollout.environment.unity import UnityConfig, UnityInstance
 allocator = PortAllocator(PortRange(24100, 24199), sys.argv[1])
 config = UnityConfig("unitysim:3DBall", additional_args=("--no-parent-watch",))
 unity = UnityInstance(config, allocator)
@@ -175,7 +175,7 @@ def test_fast_step_input_equals_mlagents_original():
     from mlagents_envs.environment import UnityEnvironment
     from mlagents_envs.side_channel.side_channel_manager import SideChannelManager
 
-    from rollout.unity import GuardedUnityEnvironment
+    from rollout.environment.unity import GuardedUnityEnvironment
 
     rng = np.random.default_rng(0)
     env = object.__new__(GuardedUnityEnvironment)
@@ -215,8 +215,8 @@ def test_each_failure_restarts_on_a_fresh_port_until_the_budget_is_spent(
     allocator, flags, timeout_wait
 ):
     """The fault repeats in every restarted player, so the budget runs out."""
-    from learners.factory import actor_factory
-    from rollout.collector import Collector
+    from learners.acting.factory import actor_factory
+    from rollout.collecting.collector import Collector
 
     config = UnityConfig(
         "unitysim:3DBall",

@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from batches import keys
-from driver.counting_learner import CountingLearner
-from learners.factory import actor_factory
-from rollout.service import RolloutService
-from rollout.service_metrics import StatsAggregationMethod
-from rollout.unity import UnityConfig
+from driver.training.counting_learner import CountingLearner
+from learners.acting.factory import actor_factory
+from rollout.environment.unity import UnityConfig
+from rollout.serving.metrics import StatsAggregationMethod
+from rollout.serving.service import RolloutService
 from tests.helpers import trajectories
 from tests.rollout.workers import collect, service_config, start_worker, stop_worker
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from batches import keys
 from batches.specs import step_spec
-from learners.factory import actor_factory
-from rollout.ports import PortRange
-from rollout.service import ServiceConfig
-from rollout.unity import UnityConfig
-from rollout.worker import RolloutWorker
+from learners.acting.factory import actor_factory
+from rollout.collecting.worker import RolloutWorker
+from rollout.environment.ports import PortRange
+from rollout.environment.unity import UnityConfig
+from rollout.serving.service import ServiceConfig
 
 PORTS = PortRange(24300, 24399)
 

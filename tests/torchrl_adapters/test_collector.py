@@ -16,7 +16,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
-from rollout.ports import PortAllocator, PortRange
+from rollout.environment.ports import PortAllocator, PortRange
 from tests.helpers import wait_gone
 from torchrl_adapters import UnityCollector
 

@@ -90,7 +90,9 @@ class Ball3D(SimEnv):
         n = self.agents_per_area * self.num_areas
         self.ids = np.arange(n, dtype=np.int32)
         self.state = np.zeros((8, n), dtype=np.float64)  # never rebound: views below
-        self.sigma, self.xz, self.y = self.state[SIGMA], self.state[X_Z], self.state[Y]
+        self.sigma = self.state[SIGMA]
+        self.xz = self.state[X_Z]
+        self.y = self.state[Y]
         self.pos, self.vel = self.state[POS], self.state[VEL]
         self.v_xz, self.v_y = self.state[V_X_Z], self.state[V_Y]
         self.reach = np.zeros(n, dtype=np.float64)  # max(|x|, |z|): over the platform?

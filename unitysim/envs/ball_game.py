@@ -54,7 +54,9 @@ class BallGame(ArenaEnv):
         self.low, self.high = limits(self.half, self.agent_radius)
         self.ball = np.zeros((self.fields, 2))
         self.ball_vel = np.zeros((self.fields, 2))
-        self.ball_radius, self.friction, self.ball_touch = 0.375, 3.4, 0.0
+        self.ball_radius = 0.375
+        self.friction = 3.4
+        self.ball_touch = 0.0
         self.ball_limit = np.asarray(self.half) - self.ball_radius
         self._no_goal = np.zeros(self.fields, dtype=np.int64)
         self.stacks = [[FrameStack(self.n, 3, r.size) for r in rays] for rays in self.rays]
