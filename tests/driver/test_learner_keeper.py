@@ -32,7 +32,7 @@ def test_a_learner_lost_before_the_first_checkpoint_comes_back_with_the_runs_fir
     from driver.system import start_learner
     from learners.host.learner import CentralLearner
     from learners.trainer_config.parse import parse_config
-    from tests.learners.fakes import segment, vector_spec
+    from testkit.segments import segment, vector_spec
 
     config = parse_config(
         {"behaviors": {"A": {"hyperparameters": {"batch_size": 8, "buffer_size": 16}}}}

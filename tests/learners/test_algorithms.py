@@ -21,7 +21,7 @@ from learners.networks.policies import ActorCritic
 from learners.networks.torchrl_views import add_flat_action
 from learners.trainer_config.parse import defaults, parse_config
 from learners.trainer_config.settings import NetworkSettings
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 from tests.waiting import wait_for
 
 

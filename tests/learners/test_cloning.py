@@ -19,8 +19,8 @@ from learners.trainer_config.settings import (
     MemorySettings,
     NetworkSettings,
 )
+from testkit.segments import segment
 from tests.demonstrations.samples import CONTINUOUS, DISCRETE, sensor, spec
-from tests.learners.fakes import segment
 
 
 @pytest.mark.parametrize(

@@ -18,7 +18,7 @@ from learners.host import devices
 from learners.host.devices import Compute, DeviceError, check_device, learner_device, to_cpu
 from learners.host.learner import CentralLearner
 from learners.trainer_config.parse import ConfigError, parse_config
-from tests.learners.fakes import DEVICES, IMAGE, VECTOR, compute_of, segment
+from testkit.segments import DEVICES, IMAGE, VECTOR, compute_of, segment
 
 
 def test_device_names_are_checked_in_one_line():

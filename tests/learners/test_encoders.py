@@ -19,7 +19,7 @@ from learners.networks.q_networks import QNetwork
 from learners.networks.torchrl_views import ActionDistribution
 from learners.trainer_config.keys import VIS_ENCODE_TYPES
 from learners.trainer_config.settings import NetworkSettings
-from tests.learners.fakes import IMAGE, VECTOR
+from testkit.segments import IMAGE, VECTOR
 
 
 def image(shape: tuple[int, ...], name: str = "camera") -> ObservationSpec:

@@ -13,7 +13,7 @@ from learners.host.learner import make_algorithm
 from learners.networks.policies import ActorCritic
 from learners.reward_signals.episode_sums import EpisodeSums
 from learners.trainer_config.parse import parse_config
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 
 
 def rows(agents: list[int], ended: list[bool], *streams: list[float]):

@@ -21,7 +21,7 @@ from learners.host.export import export_checkpoint, export_onnx
 from learners.networks.policies import ActorCritic
 from learners.trainer_config.keys import VIS_ENCODE_TYPES
 from learners.trainer_config.settings import NetworkSettings
-from tests.learners.fakes import GRID, IMAGE, VECTOR
+from testkit.segments import GRID, IMAGE, VECTOR
 
 SPECS = {
     "continuous": BehaviorSpec([VECTOR], ActionSpec(2, ())),  # 3DBall-like

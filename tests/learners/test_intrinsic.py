@@ -18,7 +18,7 @@ from learners.reward_signals.gail import GAIL
 from learners.reward_signals.intrinsic import RND, Curiosity
 from learners.trainer_config.parse import ConfigError, parse_config
 from learners.trainer_config.settings import Hyperparameters, NetworkSettings, RewardSignalSettings
-from tests.learners.fakes import DEVICES, compute_of, segment, vector_spec
+from testkit.segments import DEVICES, compute_of, segment, vector_spec
 
 SMALL = NetworkSettings(hidden_units=32, num_layers=2)
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from learners.host.learner import CentralLearner
 from learners.trainer_config.parse import parse_config
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 
 CONFIG = parse_config(
     {"behaviors": {"A": {"hyperparameters": {"batch_size": 32, "buffer_size": 64}}}}

@@ -23,7 +23,7 @@ from learners.trainer_config.settings import (
     NetworkSettings,
     TrainerSettings,
 )
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 
 ANCHORS = Path(__file__).resolve().parents[3] / "shared" / "anchors" / "mlagents-configs"
 

@@ -19,7 +19,7 @@ from learners.host.devices import Compute
 from learners.networks.encoders import visual_encoder
 from learners.networks.policies import ActorCritic
 from learners.trainer_config.settings import NetworkSettings
-from tests.learners.fakes import VECTOR, segment
+from testkit.segments import VECTOR, segment
 from tests.learners.test_algorithms import settings
 
 CUDA = torch.cuda.is_available()

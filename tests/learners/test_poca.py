@@ -22,7 +22,7 @@ from learners.trainer_config.parse import defaults
 from learners.trainer_config.settings import NetworkSettings
 from rollout.collecting.decisions import Decisions
 from rollout.collecting.segments import SegmentBuilder
-from tests.learners.fakes import DEVICES, compute_of, vector_spec
+from testkit.segments import DEVICES, compute_of, vector_spec
 
 SPEC = vector_spec(3, branches=(2,))
 NET = NetworkSettings(hidden_units=16, num_layers=1)

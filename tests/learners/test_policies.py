@@ -13,7 +13,7 @@ from learners.acting.numpy_policy import NumpyActor, acts_in_numpy, encoder_widt
 from learners.networks.policies import ActorCritic, TorchActor, numpy_state
 from learners.networks.sensors import RunningNorm, SensorEncoder
 from learners.trainer_config.settings import NetworkSettings
-from tests.learners.fakes import GRID, IMAGE, VECTOR
+from testkit.segments import GRID, IMAGE, VECTOR
 
 
 def hybrid_spec(*sensors: ObservationSpec) -> BehaviorSpec:

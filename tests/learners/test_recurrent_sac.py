@@ -18,7 +18,7 @@ from learners.host.learner import make_algorithm
 from learners.networks.policies import ActorCritic
 from learners.trainer_config.parse import defaults, load_config
 from learners.trainer_config.settings import MemorySettings, NetworkSettings, RewardSignalSettings
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 from tests.learners.test_memory import CUE_STEPS, learn_recall
 
 ANCHORS = Path(__file__).resolve().parents[3] / "shared" / "anchors" / "mlagents-configs"

@@ -12,7 +12,7 @@ import pytest
 from batches.specs import spec_to_dict
 from learners.host.remote import BUILD_NICENESS, LearnerHost
 from learners.trainer_config.parse import parse_config
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 from tests.learners.test_algorithms import as_segment
 from tests.waiting import wait_for
 

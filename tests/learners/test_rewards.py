@@ -15,7 +15,7 @@ from learners.algorithms.ppo import PPO
 from learners.algorithms.sac import SAC
 from learners.networks.policies import ActorCritic
 from learners.trainer_config.parse import defaults
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 
 SPEC = vector_spec(4, continuous=1)
 

@@ -22,8 +22,8 @@ from learners.networks.policies import ActorCritic, numpy_state
 from learners.trainer_config.parse import defaults, load_config
 from learners.trainer_config.settings import NetworkSettings
 from rollout.environment.ports import PortRange
+from testkit.segments import segment, vector_spec
 from tests.helpers import train_in_process
-from tests.learners.fakes import segment, vector_spec
 
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 SAC_STEP_BUDGET = 60_000  # agent steps; measured need: see the test

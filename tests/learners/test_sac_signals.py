@@ -14,7 +14,7 @@ from learners.algorithms.sac import SAC
 from learners.networks.policies import ActorCritic
 from learners.trainer_config.parse import defaults
 from learners.trainer_config.settings import NetworkSettings, RewardSignalSettings
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 
 SMALL = NetworkSettings(hidden_units=16, num_layers=1)
 

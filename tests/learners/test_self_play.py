@@ -16,7 +16,7 @@ from learners.algorithms.self_play import learning_steps
 from learners.host.learner import CentralLearner
 from learners.trainer_config.parse import ConfigError, parse_config
 from learners.trainer_config.settings import SelfPlaySettings
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 
 SPEC = vector_spec(4, branches=(3,))
 SELF_PLAY = {

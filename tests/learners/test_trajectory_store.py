@@ -18,7 +18,7 @@ from learners.networks.policies import ActorCritic
 from learners.networks.torchrl_views import add_flat_action, value_operator
 from learners.trainer_config.parse import parse_config
 from learners.trainer_config.settings import NetworkSettings
-from tests.learners.fakes import IMAGE, segment, vector_spec
+from testkit.segments import IMAGE, segment, vector_spec
 from tests.learners.test_algorithms import settings
 
 

@@ -10,7 +10,7 @@ from batches import keys
 from learners.algorithms.update_cut import update_cut
 from learners.host.learner import CentralLearner
 from learners.trainer_config.parse import parse_config
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 
 SPEC = vector_spec(branches=(3,))
 CONFIG = parse_config(

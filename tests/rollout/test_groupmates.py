@@ -10,7 +10,7 @@ from batches import keys
 from batches.segment import Segment
 from rollout.collecting.decisions import Decisions
 from rollout.collecting.segments import SegmentBuilder
-from tests.learners.fakes import vector_spec
+from testkit.segments import vector_spec
 
 SPEC = vector_spec(2, continuous=1)
 GROUP = {1: 1, 2: 1, 3: 1, 4: 0}  # agent -> group; agent 4 plays alone

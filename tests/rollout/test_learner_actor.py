@@ -7,7 +7,7 @@ import pytest
 
 from learners.host.remote import learner_actor
 from learners.trainer_config.parse import parse_config
-from tests.learners.fakes import segment, vector_spec
+from testkit.segments import segment, vector_spec
 from tests.waiting import wait_for
 
 pytestmark = pytest.mark.integration

@@ -8,8 +8,8 @@ import torch
 from batches import keys
 from batches.segment import Segment
 from batches.specs import spec_from_dict, spec_to_dict, step_spec
-from tests.learners.fakes import segment as fake_segment
-from tests.learners.fakes import vector_spec
+from testkit.segments import segment as fake_segment
+from testkit.segments import vector_spec
 
 
 def numpy_segment(steps: int, first_version: int = 0) -> Segment:

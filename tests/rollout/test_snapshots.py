@@ -18,8 +18,8 @@ from learners.host.remote import learner_actor
 from learners.trainer_config.parse import parse_config
 from rollout.collecting.collector import SNAPSHOTS_KEPT, Collector
 from rollout.environment.unity import UnityConfig
+from testkit.segments import segment, vector_spec
 from tests.helpers import leak_checked_allocator
-from tests.learners.fakes import segment, vector_spec
 
 pytestmark = pytest.mark.integration
 

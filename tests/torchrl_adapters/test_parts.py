@@ -19,7 +19,7 @@ from torchrl.modules import MaskedCategorical, NormalParamExtractor, TanhNormal
 
 from batches import keys
 from batches.segment import Segment
-from tests.learners.fakes import GRID, VECTOR, segment
+from testkit.segments import GRID, VECTOR, segment
 from torchrl_adapters.batch_queue import ALL, BatchQueue
 from torchrl_adapters.conventions import to_torchrl
 from torchrl_adapters.module_actor import ModuleActor, ModuleActorFactory

@@ -1,4 +1,5 @@
-"""Synthetic segments in the worker format (docs/batch-format.md), for learner tests."""
+"""Synthetic segments in the worker format (docs/batch-format.md): the test double of a
+worker's output, for learner tests."""
 
 from __future__ import annotations
 
