@@ -21,14 +21,15 @@ The value loss is the plain squared error, which is what mlagents-learn 1.1.0 co
 in effect: its code clips the value around the old estimate, but the old estimate it
 reads is the return (``RewardSignalUtil.value_estimates_key`` names the returns' buffer
 field), so the clip never binds. Clipping for real cost samples: 3DBall reached 90 at
-a median 138k steps against 114k without (docs/benchmarks.md).
+a median 138k steps against 114k without (docs/benchmarks-log.md, "every difference
+we found").
 
 Policy lag: workers act with slightly old weights. The surrogate's ratio is taken
 against the log-probability stored with each step (the policy that really acted), which
 corrects moderate lag. Every step trains, as in mlagents-learn; with ``max_policy_lag``
 set, steps acted by weights more than that many versions old are dropped from the loss
 (they still serve as GAE context) and counted. Dropping them lost learning with 16 workers
-(docs/benchmarks.md, "policy lag").
+(docs/benchmarks-log.md, "policy lag").
 """
 
 from __future__ import annotations

@@ -70,7 +70,7 @@ class Hyperparameters:
     reward_signal_steps_per_update: float | None = None  # None: steps_per_update
     # our extensions, not ML-Agents keys:
     # PPO, POCA: steps acted by weights more than this many updates old are dropped (None:
-    # every step trains, as in mlagents-learn; docs/benchmarks.md, "policy lag")
+    # every step trains, as in mlagents-learn; docs/benchmarks-log.md, "policy lag")
     max_policy_lag: int | None = None
     vtrace_rho_clip: float = 1.0  # IMPALA V-trace rho-bar
     vtrace_c_clip: float = 1.0  # IMPALA V-trace c-bar
