@@ -29,14 +29,14 @@ import psutil
 import ray
 from machine import machine  # benchmarks/machine.py
 
-from driver.counting_learner import CountingLearner
-from learners.config import CONFIG_DIR, load_config
-from learners.factory import actor_factory, policy_factory
-from learners.remote import learner_actor
-from rollout.collector import Collector
-from rollout.ports import PortAllocator
-from rollout.service import RolloutService, ServiceConfig
-from rollout.unity import UnityConfig
+from driver.training.counting_learner import CountingLearner
+from learners.acting.factory import actor_factory, policy_factory
+from learners.host.remote import learner_actor
+from learners.trainer_config.parse import CONFIG_DIR, load_config
+from rollout.collecting.collector import Collector
+from rollout.environment.ports import PortAllocator
+from rollout.environment.unity import UnityConfig
+from rollout.serving.service import RolloutService, ServiceConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # testkit: not installed
 from testkit.synthetic import SyntheticWorker, replayed
@@ -97,8 +97,8 @@ def ingestion_in_process(
 ) -> dict[str, Any]:
     import torch
 
-    from learners.devices import Compute
-    from learners.learner import CentralLearner
+    from learners.host.devices import Compute
+    from learners.host.learner import CentralLearner
 
     torch.set_num_threads(1)
     config = load_config(CONFIG_DIR / LEARNER_CONFIGS[kind])

@@ -101,7 +101,7 @@ def torchrl_rate(
 
 
 def ours_rate(player: str, instances: int, delay: float, seconds: float, frames: int) -> float:
-    from rollout.unity import UnityConfig
+    from rollout.environment.unity import UnityConfig
     from torchrl_adapters import UnityCollector
 
     policy = TensorDictModule(network(), in_keys=["observation"], out_keys=["action"])

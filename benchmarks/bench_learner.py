@@ -31,10 +31,10 @@ from mlagents_envs.base_env import ObservationType as Obs
 
 from batches import keys
 from batches.specs import spec_to_dict, step_spec
-from learners.config import CONFIG_DIR, load_config
-from learners.devices import Compute
-from learners.learner import CentralLearner
-from learners.settings import RunConfig
+from learners.host.devices import Compute
+from learners.host.learner import CentralLearner
+from learners.trainer_config.parse import CONFIG_DIR, load_config
+from learners.trainer_config.settings import RunConfig
 
 PLAIN = (DimensionProperty.NONE,)
 IMAGE = (DimensionProperty.NONE, *(DimensionProperty.TRANSLATIONAL_EQUIVARIANCE,) * 2)

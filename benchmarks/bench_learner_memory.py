@@ -53,8 +53,8 @@ def learner_process(connection: Connection, floats: int, buffer_size: int) -> No
     """The learner alone in its process, as the Ray actor is: what it holds is its own."""
     import torch
 
-    from learners.config import parse_config
-    from learners.learner import CentralLearner
+    from learners.host.learner import CentralLearner
+    from learners.trainer_config.parse import parse_config
 
     torch.set_num_threads(1)
     config = parse_config(

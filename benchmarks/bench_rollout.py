@@ -27,10 +27,10 @@ import torch
 from machine import machine  # benchmarks/machine.py
 from mlagents_envs.environment import UnityEnvironment
 
-from learners.factory import actor_factory
-from rollout.collector import Collector
-from rollout.ports import PortAllocator
-from rollout.unity import UnityConfig
+from learners.acting.factory import actor_factory
+from rollout.collecting.collector import Collector
+from rollout.environment.ports import PortAllocator
+from rollout.environment.unity import UnityConfig
 from unitysim.launcher import build
 
 
@@ -105,8 +105,8 @@ def service_run(build_name: str, workers: int, seconds: float, registry: str) ->
     import psutil
     import ray
 
-    from driver.counting_learner import CountingLearner
-    from rollout.service import RolloutService, ServiceConfig
+    from driver.training.counting_learner import CountingLearner
+    from rollout.serving.service import RolloutService, ServiceConfig
 
     learner = ray.remote(CountingLearner).options(num_cpus=0).remote(bump_every=4)
     config = ServiceConfig(

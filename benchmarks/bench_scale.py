@@ -1,10 +1,10 @@
-"""Scaling at real Unity speed: unitysim 3DBall answering every exchange ``--delay-ms`` late
-(as a build at 1000/D exchanges per second), collected by 1, 2, 4, 8 and 16 Ray workers,
-once into the counting learner (``driver/counting_learner.py``: routing only) and once into the
-real central learner (PPO, ``config/3DBall.yaml``), once with the service's default (workers
-wait for each update, as mlagents-learn's environments do, while their rows in progress
-fit in a buffer: ``rollout/demand.py``) and once collecting through it (``ppo+ahead``:
-``--collect-ahead`` of one buffer, or ``--ahead`` steps).
+"""Scaling at real Unity speed: unitysim 3DBall answering every exchange ``--delay-ms`` late (as a
+build at 1000/D exchanges per second), collected by 1, 2, 4, 8 and 16 Ray workers, once into the
+counting learner (``driver/training/counting_learner.py``: routing only) and once into the real
+central learner (PPO, ``config/3DBall.yaml``), once with the service's default (workers wait for
+each update, as mlagents-learn's environments do, while their rows in progress fit in a buffer:
+``rollout/serving/demand.py``) and once collecting through it (``ppo+ahead``: ``--collect-ahead`` of
+one buffer, or ``--ahead`` steps).
 
 The runs are interleaved: each round goes through every worker count, and at each count
 both learners, so the machine's load falls on all of them alike; each keeps its best round.
@@ -32,12 +32,12 @@ import psutil
 import ray
 from machine import machine  # benchmarks/machine.py
 
-from driver.counting_learner import CountingLearner
-from learners.config import CONFIG_DIR, load_config
-from learners.factory import actor_factory, policy_factory
-from learners.remote import learner_actor
-from rollout.service import RolloutService, ServiceConfig
-from rollout.unity import UnityConfig
+from driver.training.counting_learner import CountingLearner
+from learners.acting.factory import actor_factory, policy_factory
+from learners.host.remote import learner_actor
+from learners.trainer_config.parse import CONFIG_DIR, load_config
+from rollout.environment.unity import UnityConfig
+from rollout.serving.service import RolloutService, ServiceConfig
 
 # ppo+ahead: workers go on collecting through each update (``--collect-ahead``, one buffer)
 LEARNERS = ("counting", "ppo", "ppo+ahead")

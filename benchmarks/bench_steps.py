@@ -31,11 +31,11 @@ def one_seed(args: argparse.Namespace) -> dict:
     import torch
 
     sys.path.insert(0, str(ROOT))
-    from learners.config import load_config
-    from learners.learner import CentralLearner
-    from rollout.collector import Collector
-    from rollout.ports import PortAllocator
-    from rollout.unity import UnityConfig
+    from learners.host.learner import CentralLearner
+    from learners.trainer_config.parse import load_config
+    from rollout.collecting.collector import Collector
+    from rollout.environment.ports import PortAllocator
+    from rollout.environment.unity import UnityConfig
 
     torch.manual_seed(args.seed)
     config = load_config(args.config)

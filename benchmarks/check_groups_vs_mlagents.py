@@ -3,7 +3,7 @@
 
 ``check_trajectories_vs_mlagents.py`` checks the rows of agents without groups. This one
 sends a stream of agents in groups of three, as DungeonEscape's rooms send them, through
-our ``rollout.segments.SegmentBuilder`` and ML-Agents' agent processor, with the same
+our ``rollout.collecting.segments.SegmentBuilder`` and ML-Agents' agent processor, with the same
 action for each decision: members that skip an exchange (their status persists), a member
 sacrificed mid-episode (it reports once more, ``done``, and is gone until its group
 restarts it with a new id), groups that end together (escaped, with a group reward, or

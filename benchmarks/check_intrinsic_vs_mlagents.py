@@ -135,9 +135,9 @@ def ours(seed: int, out: Path) -> None:
 def ours_updates(seed: int, case: Case) -> dict[str, Any]:
     import torch
 
-    from learners.config import load_config
-    from learners.policies import ActorCritic
-    from learners.ppo import PPO
+    from learners.algorithms.ppo import PPO
+    from learners.networks.policies import ActorCritic
+    from learners.trainer_config.parse import load_config
 
     settings = load_config(CONFIGS / case.config).for_behavior(BEHAVIOR)
     horizon = settings.time_horizon

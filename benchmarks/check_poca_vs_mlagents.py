@@ -6,7 +6,7 @@ every case POCA treats apart: an agent whose group ends with it (group reward, b
 0), an agent that leaves while its groupmates play on (bootstrap from the group's next
 observations), rows cut at the horizon, one or two groupmates present from step to step,
 groupmates' own rewards. Our side builds the segment as a worker sends it and runs
-``learners.poca.POCA.update``; ML-Agents' side builds ``AgentExperience`` s with their
+``learners.algorithms.poca.POCA.update``; ML-Agents' side builds ``AgentExperience`` s with their
 ``group_status``, a ``Trajectory`` each, and runs its POCA trainer's ``_process_trajectory``
 steps (value and baseline estimates, the extrinsic signal with groupmates' rewards,
 ``lambda_return``) and ``TorchPOCAOptimizer.update``. The weights after the update must
@@ -114,9 +114,9 @@ def ours(seed: int, out: Path) -> None:
 
     from batches import keys
     from batches.specs import spec_to_dict, step_spec
-    from learners.config import parse_config
-    from learners.poca import POCA
-    from learners.policies import ActorCritic
+    from learners.algorithms.poca import POCA
+    from learners.networks.policies import ActorCritic
+    from learners.trainer_config.parse import parse_config
 
     settings = parse_config(CONFIG).for_behavior(BEHAVIOR)
     spec = vector_spec(OBS_SIZE, BRANCH)

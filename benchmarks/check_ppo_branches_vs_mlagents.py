@@ -75,9 +75,9 @@ def buffer(seed: int, horizon: int) -> dict[str, np.ndarray]:
 def ours(seed: int, out: Path) -> None:
     import torch
 
-    from learners.config import load_config
-    from learners.policies import ActorCritic
-    from learners.ppo import PPO
+    from learners.algorithms.ppo import PPO
+    from learners.networks.policies import ActorCritic
+    from learners.trainer_config.parse import load_config
 
     settings = load_config(CONFIG).for_behavior(BEHAVIOR)
     horizon = settings.time_horizon

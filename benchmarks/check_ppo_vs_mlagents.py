@@ -3,7 +3,7 @@
 Where learning curves can only be compared statistically, one update can be compared
 exactly: the same initial weights, the same 270 steps (rows of ``time_horizon`` steps,
 some ending their episode, the others cut and bootstrapped), the minibatches taken in
-order instead of shuffled. Our side runs ``learners.ppo.PPO.update`` (GAE, whole-buffer
+order instead of shuffled. Our side runs ``learners.algorithms.ppo.PPO.update`` (GAE, whole-buffer
 advantage normalization, ``num_epoch`` passes, the loss, Adam); ML-Agents' side builds
 its trajectories, value estimates, ``get_gae`` and ``TorchPPOOptimizer.update`` as its
 PPO trainer does. The weights after the update must agree to float precision.
@@ -135,9 +135,9 @@ def update_in_order(algorithm: Any) -> dict[str, float]:
 def ours(seed: int, out: Path) -> None:
     import torch
 
-    from learners.config import load_config
-    from learners.policies import ActorCritic
-    from learners.ppo import PPO
+    from learners.algorithms.ppo import PPO
+    from learners.networks.policies import ActorCritic
+    from learners.trainer_config.parse import load_config
 
     settings = load_config(CONFIG).for_behavior(BEHAVIOR)
     horizon = settings.time_horizon

@@ -10,7 +10,7 @@ Pieces are cut into sequences of ``sequence_length`` that do not divide them, so
 end in padding. Our actor acts along the trajectories step by step and gives each step
 the memory its decision read and its log-probabilities; both sides take those.
 
-Our side runs ``learners.recurrent_ppo.RecurrentPPO.update``. ML-Agents' side builds an
+Our side runs ``learners.algorithms.recurrent_ppo.RecurrentPPO.update``. ML-Agents' side builds an
 ``AgentExperience`` per step (with its memory), a ``Trajectory`` per piece, and runs its
 PPO trainer's ``_process_trajectory`` steps (the critic's values and memories by
 sequence from the memory the previous piece left, ``get_gae``), ``resequence_and_append``
@@ -96,9 +96,9 @@ def ours(seed: int, out: Path) -> None:
 
     from batches import keys
     from batches.specs import spec_to_dict, step_spec
-    from learners.config import parse_config
-    from learners.policies import ActorCritic
-    from learners.recurrent_ppo import RecurrentPPO
+    from learners.algorithms.recurrent_ppo import RecurrentPPO
+    from learners.networks.policies import ActorCritic
+    from learners.trainer_config.parse import parse_config
 
     settings = parse_config(CONFIG).for_behavior(BEHAVIOR)
     spec = vector_spec(OBS_SIZE, BRANCH)

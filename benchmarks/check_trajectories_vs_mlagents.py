@@ -4,7 +4,7 @@
 The exact checks of the updates (``check_ppo_vs_mlagents.py`` ...) start from a buffer;
 this one checks what goes into it. One scripted stream of exchanges, as a build sends
 them (``DecisionSteps`` and ``TerminalSteps``), goes through our
-``rollout.segments.SegmentBuilder`` and through ML-Agents' agent processor, with the same
+``rollout.collecting.segments.SegmentBuilder`` and through ML-Agents' agent processor, with the same
 action chosen for each decision. The stream has what real builds do: agents that skip
 exchanges (decision periods), episodes that end and start again in the same exchange or
 some exchanges later, episodes interrupted at their max step, rewards on every step,
@@ -111,8 +111,8 @@ def our_segments(
 ) -> list[dict[str, Any]]:
     """The segments our ``SegmentBuilder`` packs from the exchanges (``unity``: each one's
     ``DecisionSteps`` and ``TerminalSteps``), acting as each exchange says."""
-    from rollout.decisions import Decisions
-    from rollout.segments import SegmentBuilder
+    from rollout.collecting.decisions import Decisions
+    from rollout.collecting.segments import SegmentBuilder
 
     builder = SegmentBuilder("B?team=0", vector_spec(2, BRANCH), horizon)
     segments = []
