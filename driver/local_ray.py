@@ -199,7 +199,7 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
         "log_to_driver": False,
         "object_store_memory": object_store_bytes(_shm_free(), psutil.virtual_memory().total),
         # task events feed the dashboard's task list; kept in the GCS, they grew it by
-        # 190 MB in an hour of training (benchmarks/bench_memory_flat.py)
+        # 190 MB in an hour of training (benchmarks/costs/bench_memory_flat.py)
         "_system_config": {"worker_niceness": 0}
         | ({} if dashboard else {"task_events_report_interval_ms": 0}),
         # Ray's own lines (a local instance started, token auth on, no SIGTERM handler off

@@ -1,5 +1,5 @@
 """A chaos driver: faults injected into a live run's processes on a schedule, for the chaos
-benchmark (``benchmarks/bench_chaos.py``) and its shorter test.
+benchmark (``benchmarks/costs/bench_chaos.py``) and its shorter test.
 
 The run's processes are found under the ``unity-rollout train`` process it is given:
 Ray's worker processes by their titles (``ray::RolloutWorker``, ``ray::RayLearner``) and

@@ -1,4 +1,4 @@
-"""Training goes on while faults keep coming (the short form of benchmarks/bench_chaos.py).
+"""Training goes on while faults keep coming (the short form of benchmarks/costs/bench_chaos.py).
 
 One ``unity-rollout train`` on 3DBall with 2 workers takes, one after the other, each fault
 once the run has shown it handled the one before: a player crash, a hung player, a killed

@@ -24,7 +24,7 @@ many agents a group has (``learners/networks/group_critic.py``). Read top to bot
   loss); the value's is the plain squared error, which is what mlagents-learn 1.1.0
   computes in effect, as for PPO: the old estimate its clip reads is the return (its
   ``value_estimates_key`` names the returns' field), so that clip never binds.
-  ``benchmarks/check_poca_vs_mlagents.py`` checks one update against its code.
+  ``benchmarks/equality/check_poca_vs_mlagents.py`` checks one update against its code.
 
 Schedules, policy lag, the optimizer and checkpoints are PPO's (``learners/algorithms/ppo.py``).
 """

@@ -116,7 +116,7 @@ def test_the_driver_gets_control_back_while_the_learner_updates(ray_session, reg
 
 
 def test_synthetic_workers_replay_real_collects_with_no_unity_left(ray_session, registry):
-    """benchmarks/bench_central.py's source: recorded 3DBall collects, renumbered and
+    """benchmarks/speed/bench_central.py's source: recorded 3DBall collects, renumbered and
     stamped with the version each worker was sent, routed and booked like real ones."""
     learner = ray_session.remote(CountingLearner).remote(bump_every=2)
     config = service_config(UnityConfig("unitysim:3DBall"), registry)
