@@ -52,6 +52,7 @@ import ray._private.worker
 RAY_MIN_OBJECT_STORE = 75 * 1024**2
 RAY_OBJECT_STORE_SHARE = 0.3
 GCS_WAIT = "RAY_gcs_server_port_wait_time_s"  # Ray's variable: seconds for its GCS to start
+DASHBOARD_WAIT = "RAY_DASHBOARD_STARTUP_TIMEOUT_S"  # Ray's wait for its dashboard (60 s)
 NODE_POLL_S = 0.02  # how often ray.init asks the GCS whether its raylet has registered
 NODE_WAIT_S = 180.0  # give up polling, and leave the wait to Ray, after this long
 LEAN_PROCESSES = ("monitor", "log_monitor", "dashboard")  # Ray's names for what we leave out
@@ -189,10 +190,13 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
     ``ray start`` (``RAY_worker_niceness``; deploy/README.md). The object store fits
     /dev/shm (``object_store_bytes``). Ray gives its GCS server 30 s to come up; with every
     core taken by other work that start took longer, and the run died in ``ray.init``:
-    local mode waits up to 3 minutes unless the user set Ray's own variable. Without the
-    dashboard, workers report no task events: nothing would read them, and the GCS kept
+    local mode waits up to 3 minutes unless the user set Ray's own variable, and as long for
+    the dashboard (``--dashboard``; Ray's 60 s ran out beside two busy processes). Without
+    the dashboard, workers report no task events: nothing would read them, and the GCS kept
     them all run long."""
     os.environ.setdefault(GCS_WAIT, "180")
+    if dashboard:
+        os.environ.setdefault(DASHBOARD_WAIT, "180")
     options: dict[str, Any] = {
         "num_cpus": cpus,
         "include_dashboard": dashboard,

@@ -162,6 +162,9 @@ def _start_node(
         TMPDIR=str(temp_dir),  # the dashboard's forkserver leaves its socket dir here
         AUTOSCALER_METRIC_PORT=str(ports["autoscaler_metrics"]),  # fixed 44217 by default
         DASHBOARD_METRIC_PORT=str(ports["dashboard_metrics"]),  # fixed 44227 by default
+        # Ray gives the head's dashboard 60 s to come up; beside two busy processes it took
+        # longer and `ray start` failed: as long as the safety stop below
+        RAY_DASHBOARD_STARTUP_TIMEOUT_S="180",
         **{CLUSTER_TAG: tag},
         **(extra_env or {}),
     )

@@ -42,13 +42,14 @@ def test_fault_raises_the_real_exception(open_env, flags, error, message):
 
 
 def test_hang_times_out(open_env):
-    """The test is about the timeout: 10 s, not mlagents' 60 (a hang costs two of them,
-    the step's and close()'s wait before the kill)."""
-    with (
-        open_env("3DBall", additional_args=["--sim-hang-after", "2"], timeout_wait=10) as env,
-        pytest.raises(UnityTimeOutException),
-    ):
-        run_steps(env, 10)
+    """The test is about the hang's timeout: 10 s, not mlagents' 60 (a hang costs two of
+    them, the step's and close()'s wait before the kill). The start keeps mlagents' 60 s:
+    beside two busy processes a player took more than 10 s to connect. mlagents-envs reads
+    the wait from these two attributes on every exchange and at close."""
+    with open_env("3DBall", additional_args=["--sim-hang-after", "2"]) as env:
+        env._communicator.timeout_wait = env._timeout_wait = 10
+        with pytest.raises(UnityTimeOutException):
+            run_steps(env, 10)
 
 
 def test_slow_answers_are_slow_but_correct(open_env):
