@@ -53,6 +53,7 @@ RAY_MIN_OBJECT_STORE = 75 * 1024**2
 RAY_OBJECT_STORE_SHARE = 0.3
 GCS_WAIT = "RAY_gcs_server_port_wait_time_s"  # Ray's variable: seconds for its GCS to start
 DASHBOARD_WAIT = "RAY_DASHBOARD_STARTUP_TIMEOUT_S"  # Ray's wait for its dashboard (60 s)
+START_WAIT_S = 180  # our wait for each (Ray's own runs out on a loaded node); deploy/ sets it too
 NODE_POLL_S = 0.02  # how often ray.init asks the GCS whether its raylet has registered
 NODE_WAIT_S = 180.0  # give up polling, and leave the wait to Ray, after this long
 LEAN_PROCESSES = ("monitor", "log_monitor", "dashboard")  # Ray's names for what we leave out
@@ -194,9 +195,9 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
     the dashboard (``--dashboard``; Ray's 60 s ran out beside two busy processes). Without
     the dashboard, workers report no task events: nothing would read them, and the GCS kept
     them all run long."""
-    os.environ.setdefault(GCS_WAIT, "180")
+    os.environ.setdefault(GCS_WAIT, str(START_WAIT_S))
     if dashboard:
-        os.environ.setdefault(DASHBOARD_WAIT, "180")
+        os.environ.setdefault(DASHBOARD_WAIT, str(START_WAIT_S))
     options: dict[str, Any] = {
         "num_cpus": cpus,
         "include_dashboard": dashboard,

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import psutil
 
+from driver.local_ray import DASHBOARD_WAIT, START_WAIT_S
 from tests.helpers import free_port
 from tests.waiting import poll_until
 
@@ -164,7 +165,7 @@ def _start_node(
         DASHBOARD_METRIC_PORT=str(ports["dashboard_metrics"]),  # fixed 44227 by default
         # Ray gives the head's dashboard 60 s to come up; beside two busy processes it took
         # longer and `ray start` failed: as long as the safety stop below
-        RAY_DASHBOARD_STARTUP_TIMEOUT_S="180",
+        **{DASHBOARD_WAIT: str(START_WAIT_S)},
         **{CLUSTER_TAG: tag},
         **(extra_env or {}),
     )

@@ -17,6 +17,7 @@ import ray
 import yaml
 
 from driver.cli import build_parser
+from driver.local_ray import DASHBOARD_WAIT, GCS_WAIT, START_WAIT_S
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -26,6 +27,7 @@ GPU_IMAGE = f"{IMAGE}-gpu"  # docker build --build-arg TORCH=<a CUDA build>
 GPU = "nvidia.com/gpu"
 LEARNER_GROUP = "learner-gpu"
 SECRET = {"name": "unity-rollout-ray-auth", "key": "auth_token"}
+START_WAITS = (GCS_WAIT, DASHBOARD_WAIT)  # what a loaded head needs longer than Ray gives
 # (CPU manifest, its GPU-learner twin)
 PAIRS = [
     ("kuberay/raycluster.yaml", "kuberay/raycluster-gpu.yaml"),
@@ -117,6 +119,8 @@ def test_kuberay_cluster_spec(name, spec):
     assert spec["rayVersion"] == ray_version()
     head = spec["headGroupSpec"]
     assert head["rayStartParams"]["num-cpus"] == "0"  # no Unity on the head
+    head_env = {e["name"]: e for e in head["template"]["spec"]["containers"][0]["env"]}
+    assert all(head_env[name]["value"] == str(START_WAIT_S) for name in START_WAITS)
     assert {p["containerPort"] for p in head["template"]["spec"]["containers"][0]["ports"]} >= {
         6379,
         8265,
@@ -327,7 +331,8 @@ def test_cluster_launcher_config():
     assert config["head_node_type"] in config["available_node_types"]
     head, workers = config["head_start_ray_commands"], config["worker_start_ray_commands"]
     for command in head + workers:
-        assert "RAY_AUTH_MODE=token ray start" in command
+        assert "RAY_AUTH_MODE=token " in command and " ray start " in command
+    assert all(f"{name}={START_WAIT_S} " in c for c in head for name in START_WAITS)
     assert any("--head" in c and "--dashboard-host=127.0.0.1" in c for c in head)
     assert any("--num-cpus=0" in c for c in head)  # the head runs no Unity
     assert all("--address=$RAY_HEAD_IP:6379" in c for c in workers)
