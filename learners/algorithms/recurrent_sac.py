@@ -17,6 +17,7 @@ What differs from ``learners/algorithms/sac.py``:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -37,6 +38,21 @@ if TYPE_CHECKING:
 VALID = "valid"  # [S, L] bool: a real step (else padding)
 
 
+@dataclass(frozen=True)
+class SequenceInputs:
+    """What the passes read of sampled sequences ``[B, L]``: each sensor's observations
+    ``[B, L, ...]`` (or ``[B, L + 1, ...]``: the first state, then the states after each
+    step), and the sequences themselves (their memories, real steps, stored actions)."""
+
+    sensors: list[torch.Tensor]
+    sequences: TensorDict
+
+    @property
+    def skipped(self) -> int:
+        """Leading outputs that belong to no step of the sequences (the first state)."""
+        return self.sensors[0].shape[1] - self.sequences.shape[1]
+
+
 class RecurrentSAC(SAC):
     q_network = RecurrentQNetwork
 
@@ -47,7 +63,6 @@ class RecurrentSAC(SAC):
         memory = settings.network_settings.memory
         assert memory is not None and network.lstm is not None
         self.length = memory.sequence_length
-        self._sequences: TensorDict | None = None  # the gradient step's, [B, L]
         super().__init__(network, settings, *args, **kwargs)
 
     def items(self, steps: int) -> int:
@@ -63,59 +78,47 @@ class RecurrentSAC(SAC):
     def stored_steps(self) -> int:
         return len(self.buffer) * self.length
 
-    def sample(self) -> TensorDict:
-        """The real steps of sampled sequences (what the signals train on)."""
-        sampled = self.buffer.sample()
+    def steps(self, sampled: TensorDict) -> TensorDict:
+        """The real steps of sampled sequences ``[B, L]`` (the padding left out)."""
         return sampled[sampled[VALID]]
 
-    def gradient_step(self, batch: TensorDict) -> dict[str, torch.Tensor]:
-        """SAC's step on the real steps of sampled sequences ``[B, L]``; the networks run
-        over the whole sequences (``policy_params``, ``q_values``)."""
-        self._sequences = batch
-        try:
-            return super().gradient_step(batch[batch[VALID]])
-        finally:
-            self._sequences = None
-
-    def inputs(self, batch: TensorDict, after: bool = False) -> Any:
+    def inputs(self, sampled: TensorDict, after: bool = False) -> SequenceInputs:
         """Each sensor's sequences ``[B, L, ...]``; ``after``: the first state, then the
         states after each step ``[B, L + 1, ...]``."""
-        seqs = self._sequences
-        assert seqs is not None
+        names = self.network.sensor_names
         if not after:
-            return [seqs[keys.OBS, name] for name in self.network.sensor_names]
-        return [
-            torch.cat([seqs[keys.OBS, name][:, :1], seqs[keys.NEXT, keys.OBS, name]], dim=1)
-            for name in self.network.sensor_names
+            return SequenceInputs([sampled[keys.OBS, name] for name in names], sampled)
+        sensors = [
+            torch.cat([sampled[keys.OBS, name][:, :1], sampled[keys.NEXT, keys.OBS, name]], dim=1)
+            for name in names
         ]
+        return SequenceInputs(sensors, sampled)
 
-    def policy_params(self, inputs: Any) -> tuple[torch.Tensor, ...]:
+    def policy_params(self, inputs: SequenceInputs) -> tuple[torch.Tensor, ...]:
         """The actor from each sequence's stored memory; its real steps' params."""
-        seqs = self._sequences
-        assert seqs is not None
-        net = self.network
-        b, n = inputs[0].shape[:2]
-        sensors = zip(net.sensor_names, inputs, strict=True)
+        net, seqs = self.network, inputs.sequences
+        b, n = inputs.sensors[0].shape[:2]
+        sensors = zip(net.sensor_names, inputs.sensors, strict=True)
         encoded = net.encode({name: x.flatten(0, 1) for name, x in sensors})
         hidden = net.trunk(encoded).unflatten(0, (b, n))
         assert net.lstm is not None
         hidden = net.recur(net.lstm, hidden, seqs[keys.MEMORY][:, 0])[0]
-        return self.policy.heads(hidden[:, n - self.length :][seqs[VALID]])
+        return self.policy.heads(hidden[:, inputs.skipped :][seqs[VALID]])
 
-    def q_values(self, qs: nn.ModuleList, inputs: Any, actions: list[torch.Tensor]) -> torch.Tensor:
+    def q_values(
+        self, qs: nn.ModuleList, inputs: SequenceInputs, actions: list[torch.Tensor]
+    ) -> torch.Tensor:
         """Both Qs over the sequences from zero memory ``[2, real steps, streams,
         outputs]``; a continuous ``actions`` (one per real step) is laid back along the
         sequences, after the stored first action when the inputs start a state earlier."""
-        seqs = self._sequences
-        assert seqs is not None
+        seqs = inputs.sequences
         valid = seqs[VALID]
-        n = inputs[0].shape[1]
         along: list[torch.Tensor] = []
         if actions:
             laid = actions[0].new_zeros(*valid.shape, actions[0].shape[-1])
             laid[valid] = actions[0]
-            if n > self.length:
+            if inputs.skipped:
                 laid = torch.cat([seqs[CONTINUOUS_ACTION][:, :1], laid], dim=1)
             along = [laid]
-        out = torch.stack([q.sequences(*inputs, *along) for q in qs])
-        return out[:, :, n - self.length :][:, valid].unflatten(-1, (self.streams, -1))
+        out = torch.stack([q.sequences(*inputs.sensors, *along) for q in qs])
+        return out[:, :, inputs.skipped :][:, valid].unflatten(-1, (self.streams, -1))

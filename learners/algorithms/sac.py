@@ -254,17 +254,18 @@ class SAC:
         return self.signals.train(self.sample() for _ in range(min(owed, MAX_GRADIENT_STEPS)))
 
     def sample(self) -> TensorDict:
-        """Sampled transitions ``[batch_size]``."""
-        return self.buffer.sample()
+        """The transitions of one sampled item (what the signals train on)."""
+        return self.steps(self.buffer.sample())
 
-    def gradient_step(self, batch: TensorDict) -> dict[str, torch.Tensor]:
+    def gradient_step(self, sampled: TensorDict) -> dict[str, torch.Tensor]:
         """One step of all three losses on a sampled batch (each computed with the
         weights before the step, summed, one backward), then the Polyak target update.
         Returns detached scalars: the losses, the entropy, each Q's squared TD error and
         the mean Q of the stored actions."""
-        obs = self.inputs(batch)
+        batch = self.steps(sampled)
+        obs = self.inputs(sampled)
         alpha = self.log_alpha.detach().exp()
-        target = self.target(batch, alpha)  # its draw of a' comes first, as in torchrl's
+        target = self.target(sampled, alpha)  # its draw of a' comes first, as in torchrl's
         stored = [batch[CONTINUOUS_ACTION]] if self.continuous else []
         values = self.q_values(self.q, obs, stored)  # [2, B, streams, outputs]
         chosen = taken(values, batch.get(DISCRETE_ACTION, None), self.branches)  # [2, B, S]
@@ -311,13 +312,17 @@ class SAC:
             "estimate": chosen.detach()[..., 0].mean(),
         }
 
-    # the networks' inputs and passes (learners/algorithms/recurrent_sac.py runs them over
-    # sequences)
+    # what a sampled item holds, and the networks' passes over it
+    # (learners/algorithms/recurrent_sac.py samples sequences and runs over them)
 
-    def inputs(self, batch: TensorDict, after: bool = False) -> Any:
-        """What ``policy_params`` and ``q_values`` read of a batch (``after``: of the
-        states after its steps)."""
-        source = batch[keys.NEXT] if after else batch
+    def steps(self, sampled: TensorDict) -> TensorDict:
+        """The transitions of a sampled item that the losses average over."""
+        return sampled
+
+    def inputs(self, sampled: TensorDict, after: bool = False) -> Any:
+        """What ``policy_params`` and ``q_values`` read of a sampled item (``after``: of
+        the states after its steps)."""
+        source = sampled[keys.NEXT] if after else sampled
         return [source[keys.OBS, name] for name in self.network.sensor_names]
 
     def policy_params(self, inputs: Any) -> tuple[torch.Tensor, ...]:
@@ -328,12 +333,13 @@ class SAC:
         return torch.stack([q(*inputs, *actions) for q in qs]).unflatten(-1, (self.streams, -1))
 
     @torch.no_grad()
-    def target(self, batch: TensorDict, alpha: torch.Tensor) -> torch.Tensor:
+    def target(self, sampled: TensorDict, alpha: torch.Tensor) -> torch.Tensor:
         """``r + gamma (1 - terminated) V(s')`` with the target Qs: ``V`` of a fresh
         ``a' ~ pi(s')`` (continuous), the expectation over each branch's masked softmax
         (discrete: their mean over branches), both for hybrid actions."""
+        batch = self.steps(sampled)
         nxt = batch[keys.NEXT]
-        next_obs = self.inputs(batch, after=True)
+        next_obs = self.inputs(sampled, after=True)
         params = self.policy_params(next_obs)
         sampled: list[torch.Tensor] = []
         if self.continuous:

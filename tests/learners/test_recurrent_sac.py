@@ -73,7 +73,6 @@ def test_the_actor_reads_the_stored_memory_and_the_qs_start_from_zeros():
     batch = sac.buffer.storage[: len(sac.buffer)]  # sequences: 4, 1 (+3 padding), 3 (+1)
 
     def passes(sequences):
-        sac._sequences = sequences
         inputs = sac.inputs(sequences)
         flat = sequences[sequences[VALID]]
         q = sac.q_values(sac.q, inputs, [flat["continuous_action"]])
@@ -89,9 +88,7 @@ def test_the_actor_reads_the_stored_memory_and_the_qs_start_from_zeros():
         # the last piece (3 real steps of 4) as a sequence of its own, without padding
         alone = batch[2:3, :3]
         alone[VALID] = torch.ones(1, 3, dtype=torch.bool)
-        sac.length = 3
         alone_loc, alone_q = passes(alone)
-        sac.length = 4
         torch.testing.assert_close(alone_loc, loc[-3:])
         torch.testing.assert_close(alone_q, q[:, -3:])
 
