@@ -16,7 +16,13 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, NoReturn
 
 from driver.declaration import TrainingError, add_arguments, from_arguments
-from driver.options import CollectOptions, RecordDemoOptions, TrainOptions, TuneOptions
+from driver.options import (
+    CollectOptions,
+    RecordDemoOptions,
+    TrainOptions,
+    TuneOptions,
+    build_of,
+)
 
 if TYPE_CHECKING:
     from driver.local_ray import BackgroundRay
@@ -145,9 +151,8 @@ def _cmd_collect(args: argparse.Namespace) -> int:
     from rollout.environment.builds import UnityError, resolve_build
 
     console = Console()
-    build = None if options.env == "editor" else options.env
     try:
-        resolve_build(build)
+        resolve_build(build_of(options.env))
     except UnityError as error:
         console.print(f"[red]error:[/red] {error}")
         return 2

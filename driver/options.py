@@ -26,6 +26,11 @@ from rollout.environment.restarts import RestartPolicy
 __all__ = ["CollectOptions", "RecordDemoOptions", "TrainOptions", "TrainingError", "TuneOptions"]
 
 
+def build_of(env: str) -> str | None:
+    """The build an ``--env`` names; None for the Editor (its Play button)."""
+    return None if env == "editor" else env
+
+
 def workers_value(text: str) -> int | str:
     if text == "auto":
         return text

@@ -1,7 +1,7 @@
 """A run's system wired from its options and trainer config: what every Unity instance
 gets, the learner actor and the service with its workers (not yet started). The CLI's
-``train`` and a Tune trial (``driver/tuning/trial.py``) build theirs the same way, and
-``collect`` its counting one."""
+``train`` and a Tune trial (``driver/tuning/trial.py``) build theirs the same way,
+``collect`` its counting one, and ``record-demo`` its one Unity instance's config."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import ray
 
 from batches.expert_steps import ExpertSteps
 from driver.declaration import TrainingError
-from driver.options import CollectOptions, TrainOptions
+from driver.options import CollectOptions, RecordDemoOptions, TrainOptions, build_of
 from driver.training.curriculum import LessonPlan, lesson_plan
 from driver.training.learner_keeper import initialize_into, load_into
 from driver.training.planner import Start
@@ -38,12 +38,11 @@ def unity_config(
     line's engine options over them (as mlagents-learn), the run's seed and arguments, the
     environment parameters of the run's lessons (the first ones, unless resumed)."""
     lessons = lessons or lesson_plan(options, config, None)
-    build = None if options.env == "editor" else options.env
     engine_fields = {f.name for f in dataclasses.fields(EngineSettings)}
     given = {k: v for k, v in config.engine.items() if k in engine_fields}
     given |= {k: v for k in engine_fields if (v := getattr(options, k)) is not None}
     return UnityConfig(
-        build,
+        build_of(options.env),
         # the engine settings a player takes as arguments, not through a side channel
         no_graphics=options.no_graphics or bool(config.engine.get("no_graphics", False)),
         no_graphics_monitor=options.no_graphics_monitor
@@ -205,12 +204,22 @@ def build_collect_system(options: CollectOptions) -> tuple[RolloutService, Any]:
     from driver.training.counting_learner import CountingLearner
 
     learner = ray.remote(CountingLearner).options(num_cpus=0).remote()
-    build = None if options.env == "editor" else options.env
     local_share = min(1.0, options.cpus / options.workers)
     config = ServiceConfig(
-        UnityConfig(build, seed=options.seed),
+        UnityConfig(build_of(options.env), seed=options.seed),
         num_workers=options.workers,
         horizon=options.horizon,
         worker_cpus=1.0 if options.address else local_share,
     )
     return RolloutService(config, actor_factory, learner), learner
+
+
+def record_unity_config(options: RecordDemoOptions) -> UnityConfig:
+    """What ``record-demo``'s one Unity instance gets (it runs in the command's process:
+    no Ray, no learner)."""
+    return UnityConfig(
+        build_of(options.env),
+        seed=options.seed,
+        no_graphics=options.no_graphics,
+        timeout_wait=options.timeout_wait,
+    )

@@ -27,7 +27,8 @@ from demonstrations import DemoError, Demonstration, spec_mismatch, write_demo
 from driver.declaration import TrainingError
 from driver.options import RecordDemoOptions
 from driver.recording.recorder import ExpertActor, PolicyActor, RandomActor, StepActor, StepRecorder
-from rollout.environment.unity import UnityConfig, UnityInstance
+from driver.system import record_unity_config
+from rollout.environment.unity import UnityInstance
 from unitysim.experts import EXPERTS, expert_for
 
 NAME_LENGTH = 16  # Unity's DemonstrationRecorder.MaxNameLength
@@ -148,13 +149,7 @@ def record_demo(options: RecordDemoOptions) -> Recorded:
         import torch
 
         torch.manual_seed(options.seed)  # sampled actions: the same file for the same seed
-    config = UnityConfig(
-        None if options.env == "editor" else options.env,
-        seed=options.seed,
-        no_graphics=options.no_graphics,
-        timeout_wait=options.timeout_wait,
-    )
-    with UnityInstance(config) as unity:
+    with UnityInstance(record_unity_config(options)) as unity:
         unity.reset()
         specs = dict(unity.behavior_specs)
         behavior = _behavior(options, specs)

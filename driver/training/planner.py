@@ -22,7 +22,7 @@ import yaml
 from batches.contracts import base_name
 from batches.expert_steps import ExpertSteps
 from driver.declaration import TrainingError, from_settings
-from driver.options import TrainOptions
+from driver.options import TrainOptions, build_of
 from learners.acting.factory import policy_factory
 from learners.trainer_config.parse import (
     DEFAULTS,
@@ -191,7 +191,7 @@ def open_run(plan: Plan) -> Start:
             source = Path(options.results_dir) / options.initialize_from
             initial = _checkpoints("--initialize-from", source, plan)
         start = Start(initial=_with_init_paths(initial, source, plan))
-    _resolve(None if options.env == "editor" else options.env)
+    _resolve(build_of(options.env))
     try:  # before Unity and the learner start: a run that cannot write would lose its checkpoints
         run_dir.mkdir(parents=True, exist_ok=True)
         probe = run_dir / ".write-test"
