@@ -38,6 +38,12 @@ RAY = str(VENV_BIN / "ray")
 CLUSTER_TAG = "UNITY_ROLLOUT_DEPLOY_CLUSTER"
 LOOPBACK = "127.0.0.1"
 
+NODE_UP_S = 180  # a node's `ray start` up to "Ray runtime started": a safety stop
+# A test that starts a private cluster: each node may take two starts of up to NODE_UP_S on a
+# loaded machine (Ray's own 30-s wait for the raylet to register ran out there), then the
+# test itself: the suite's 300 s per test would stop it mid-start (pytest-timeout).
+CLUSTER_TEST_TIMEOUT_S = 1500
+
 
 def free_ports(count: int) -> list[int]:
     """``count`` distinct ports nothing listens on (outside the ephemeral range)."""
@@ -205,7 +211,13 @@ def _start_node(
         )
     node = RayNode(name, process, temp_dir, log_path, tag, ports)
     # Ray's own waits for its GCS and raylet are 60 s and more: this one is a safety stop
-    poll_until(lambda: "Ray runtime started" in node.log() or process.poll() is not None, 180)
+    try:
+        poll_until(
+            lambda: "Ray runtime started" in node.log() or process.poll() is not None, NODE_UP_S
+        )
+    except BaseException:  # the test's own safety stop: nothing of this node stays behind
+        stop_nodes([node])
+        raise
     if "Ray runtime started" not in node.log():
         failure = node.log()
         stop_nodes([node])
@@ -312,8 +324,8 @@ def stop_nodes(nodes: list[RayNode], grace_s: float = 5.0) -> list[str]:
         if p.info["status"] != psutil.STATUS_ZOMBIE
         and any(str(node.temp_dir) in arg for node in nodes for arg in p.info["cmdline"] or [])
     ]
-    for node in nodes:
-        shutil.rmtree(node.temp_dir, ignore_errors=True)
+    for node in nodes:  # a process that was dying may still have written into it
+        poll_until(lambda d=node.temp_dir: _removed(d), 10)
     return left + [entry for entry in by_path if entry not in left]
 
 
@@ -369,3 +381,8 @@ def listening_addresses(tag: str) -> dict[str, list[str]]:
                         f"{conn.laddr.ip}:{conn.laddr.port}"
                     )
     return found
+
+
+def _removed(directory: Path) -> bool:
+    shutil.rmtree(directory, ignore_errors=True)
+    return not directory.exists()

@@ -18,6 +18,7 @@ import psutil
 import pytest
 
 from tests.deploy.raynodes import (
+    CLUSTER_TEST_TIMEOUT_S,
     auth_env,
     cluster_processes,
     new_token,
@@ -27,7 +28,7 @@ from tests.deploy.raynodes import (
 )
 from tests.waiting import poll_until
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(CLUSTER_TEST_TIMEOUT_S)]
 
 ROOT = Path(__file__).resolve().parents[2]
 NODE = "UNITY_ROLLOUT_TEST_NODE"  # each worker node's own mark, inherited by its processes

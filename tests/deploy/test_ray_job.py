@@ -11,10 +11,17 @@ from pathlib import Path
 
 import pytest
 
-from tests.deploy.raynodes import LOOPBACK, RAY, auth_env, listening_addresses, new_token
+from tests.deploy.raynodes import (
+    CLUSTER_TEST_TIMEOUT_S,
+    LOOPBACK,
+    RAY,
+    auth_env,
+    listening_addresses,
+    new_token,
+)
 from tests.deploy.raynodes import private_cluster as start_private_cluster
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(CLUSTER_TEST_TIMEOUT_S)]
 
 JOB_MAX_STEPS = 2000
 

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.deploy.raynodes import auth_env, new_token, private_cluster
+from tests.deploy.raynodes import CLUSTER_TEST_TIMEOUT_S, auth_env, new_token, private_cluster
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(CLUSTER_TEST_TIMEOUT_S)]
 
 ROOT = Path(__file__).resolve().parents[2]
 
