@@ -35,7 +35,7 @@ def run_steps(env, steps: int) -> None:
 )
 def test_fault_raises_the_real_exception(open_env, flags, error, message):
     with (
-        open_env("3DBall", additional_args=flags, timeout_wait=10) as env,
+        open_env("3DBall", additional_args=flags) as env,
         pytest.raises(error, match=message),
     ):
         run_steps(env, 10)

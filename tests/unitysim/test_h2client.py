@@ -209,7 +209,7 @@ def test_session_with_each_client(open_env, client):
 def test_oversize_fault_with_each_client(open_env, client):
     flags = ["--grpc-client", client, "--sim-oversize-after", "2"]
     with (
-        open_env("3DBall", additional_args=flags, timeout_wait=10) as env,
+        open_env("3DBall", additional_args=flags) as env,
         pytest.raises(UnityEnvironmentException, match="return code 1"),
     ):
         env.reset()
