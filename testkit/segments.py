@@ -18,6 +18,9 @@ from learners.host.devices import Compute
 DEVICES = ["cpu", *(["cuda"] if torch.cuda.is_available() else [])]
 VECTOR = ObservationSpec((8,), (DimensionProperty.NONE,), Obs.DEFAULT, "vector")
 GRID = ObservationSpec((2, 3), (DimensionProperty.NONE,) * 2, Obs.DEFAULT, "rank2")
+BUFFER = ObservationSpec(  # a BufferSensor: up to 6 entities of 5 numbers, zero rows absent
+    (6, 5), (DimensionProperty.VARIABLE_SIZE, DimensionProperty.NONE), Obs.DEFAULT, "buffer"
+)
 IMAGE = ObservationSpec(  # the default (simple) encoder's smallest image
     (3, 20, 20),
     (

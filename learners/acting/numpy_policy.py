@@ -19,7 +19,12 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from mlagents_envs.base_env import BehaviorSpec, ObservationSpec, ObservationType
+from mlagents_envs.base_env import (
+    BehaviorSpec,
+    DimensionProperty,
+    ObservationSpec,
+    ObservationType,
+)
 
 from learners.acting.numpy_images import NumpyImageEncoder, initial_encoder_weights
 from learners.trainer_config.settings import NetworkSettings
@@ -29,6 +34,9 @@ _LOG_2 = math.log(2.0)
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # conditional_sigma clamp (ML-Agents' range)
 ACTION_CLIP = 3.0  # unsquashed samples reach Unity as clamp(a, -3, 3) / 3 (ML-Agents)
 NORM_CLIP = 5.0  # normalized observations are clipped to +-5 (ML-Agents)
+ATTENTION_WIDTH = 128  # ML-Agents' ATTENTION_EMBEDDING_SIZE, whatever hidden_units is
+ENTITY_GAIN = 0.125  # ML-Agents' attention layers: Normal init, gain sqrt(0.125 / width)
+ABSENT_BELOW = 0.01  # an entity row whose squares sum below this is padding (ML-Agents)
 
 
 def is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
@@ -36,6 +44,16 @@ def is_goal(observation: ObservationSpec, settings: NetworkSettings) -> bool:
         settings.goal_conditioning_type == "hyper"
         and observation.observation_type == ObservationType.GOAL_SIGNAL
     )
+
+
+def is_entities(observation: ObservationSpec) -> bool:
+    """A variable-length sensor (a ``BufferSensor``): ``[max entities, entity size]``
+    rows, the absent ones all zeros (``learners.networks.entities`` attends over them)."""
+    return DimensionProperty.VARIABLE_SIZE in observation.dimension_property
+
+
+def entity_sensors(spec: BehaviorSpec) -> list[int]:
+    return [i for i, o in enumerate(spec.observation_specs) if is_entities(o)]
 
 
 def encoder_width(shape: tuple[int, ...], settings: NetworkSettings) -> int:
@@ -50,18 +68,29 @@ def goal_sensors(spec: BehaviorSpec, settings: NetworkSettings) -> list[int]:
     return goals if goals and len(goals) < len(spec.observation_specs) else []
 
 
+def own_widths(spec: BehaviorSpec, settings: NetworkSettings) -> list[int]:
+    """Each sensor's encoded width in the trunk's input (0 for a variable-length one: its
+    rows reach the trunk through the entity attention's ``ATTENTION_WIDTH``)."""
+    return [
+        0 if is_entities(o) else encoder_width(tuple(o.shape), settings)
+        for o in spec.observation_specs
+    ]
+
+
 def trunk_input_width(spec: BehaviorSpec, settings: NetworkSettings) -> int:
-    sizes = [encoder_width(tuple(o.shape), settings) for o in spec.observation_specs]
+    sizes = own_widths(spec, settings)
+    attended = ATTENTION_WIDTH if entity_sensors(spec) else 0
     goals = goal_sensors(spec, settings)
     if not goals:
-        return sum(sizes)
+        return sum(sizes) + attended
     goal = sum(sizes[i] for i in goals)
-    return (sum(sizes) - goal) * goal + goal
+    return (sum(sizes) - goal + attended) * goal + goal
 
 
 def acts_in_numpy(spec: BehaviorSpec, settings: NetworkSettings) -> bool:
-    """No goal conditioning: the numpy actor covers vectors and images."""
-    return not goal_sensors(spec, settings)
+    """No goal conditioning, no variable-length sensor: the numpy actor covers vectors
+    and images."""
+    return not goal_sensors(spec, settings) and not entity_sensors(spec)
 
 
 def initial_weights(
@@ -85,7 +114,7 @@ def initial_weights(
         state[f"{name}.bias"] = np.zeros(out, np.float32)
 
     for index, observation in enumerate(spec.observation_specs):
-        if settings.normalize and len(observation.shape) != 3:
+        if settings.normalize and len(observation.shape) != 3 and not is_entities(observation):
             size = math.prod(observation.shape)
             state[f"encoders.{index}.norm.count"] = np.array(1e-4, np.float64)
             state[f"encoders.{index}.norm.mean"] = np.zeros(size, np.float32)
@@ -126,6 +155,40 @@ def initial_weights(
             kind, out = settings.vis_encode_type, settings.hidden_units
             draws = initial_encoder_weights(prefix, shape, kind, out, rng, observation.name)
             state.update(draws)
+    state.update(initial_entity_weights(spec, settings, rng))
+    return state
+
+
+def initial_entity_weights(
+    spec: BehaviorSpec,
+    settings: NetworkSettings,
+    rng: np.random.Generator,
+    prefix: str = "entities",
+) -> dict[str, np.ndarray]:
+    """``learners.networks.entities.EntityAttention``'s layers, as ML-Agents draws them
+    (``Initialization.Normal``: std 1, times sqrt(0.125 / 128); zero biases); none
+    without a variable-length sensor. Drawn after every other layer, so a behavior without
+    one keeps its weights."""
+    sensors = entity_sensors(spec)
+    if not sensors:
+        return {}
+    width = ATTENTION_WIDTH
+    gain = math.sqrt(ENTITY_GAIN / width)
+    state: dict[str, np.ndarray] = {}
+
+    def normal(name: str, fan_in: int) -> None:
+        weight = rng.normal(0.0, 1.0, size=(width, fan_in)) * gain
+        state[f"{prefix}.{name}.weight"] = weight.astype(np.float32)
+        state[f"{prefix}.{name}.bias"] = np.zeros(width, np.float32)
+
+    own = sum(own_widths(spec, settings))
+    if own:
+        normal("own.0", own)
+    for k, index in enumerate(sensors):
+        size = spec.observation_specs[index].shape[1]
+        normal(f"embeddings.{k}.0", (width if own else 0) + size)
+    for name in ("q", "k", "v", "out"):
+        normal(f"attention.{name}", width)
     return state
 
 

@@ -28,39 +28,11 @@ import torch
 from mlagents_envs.base_env import BehaviorSpec
 from torch import nn
 
+from learners.networks.entities import SelfAttention, entity_attention
 from learners.networks.initializers import kaiming, normal
 from learners.networks.mixed_precision import Autocast
 from learners.networks.sensors import SensorEncoder
 from learners.trainer_config.settings import NetworkSettings
-
-HEADS = 4
-NEG_INF = -1e6  # ML-Agents' additive mask for absent keys
-
-
-class SelfAttention(nn.Module):
-    """Residual multi-head self-attention over entities, pooled by a masked mean."""
-
-    def __init__(self, width: int) -> None:
-        super().__init__()
-        gain = math.sqrt(0.125 / width)
-        self.q, self.k, self.v, self.out = (normal(width, width, gain) for _ in range(4))
-        self.width = width
-
-    def forward(self, entities: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
-        """``entities [B, E, W]``, ``present [B, E]`` bool -> ``[B, W]``."""
-        b, e, w = entities.shape
-        x = nn.functional.layer_norm(entities, (w,))
-        heads = (HEADS, w // HEADS)
-        q = self.q(x).reshape(b, e, *heads).transpose(1, 2)  # [B, H, E, W/H]
-        k = self.k(x).reshape(b, e, *heads).transpose(1, 2)
-        v = self.v(x).reshape(b, e, *heads).transpose(1, 2)
-        scores = q @ k.transpose(-1, -2) / math.sqrt(w)
-        absent = (~present).float().reshape(b, 1, 1, e)
-        scores = (1 - absent) * scores + absent * NEG_INF
-        attended = (torch.softmax(scores, -1) @ v).transpose(1, 2).reshape(b, e, w)
-        y = nn.functional.layer_norm(self.out(attended) + x, (w,))
-        weight = present.float().unsqueeze(-1)
-        return (y * weight).sum(1) / (weight.sum(1) + 1e-7)
 
 
 class GroupCritic(nn.Module):
@@ -69,10 +41,11 @@ class GroupCritic(nn.Module):
         h = settings.hidden_units
         self.sensor_names = [o.name for o in spec.observation_specs]
         self.encoders = nn.ModuleList(
-            SensorEncoder(o.shape, settings, settings.normalize, o.name)
-            for o in spec.observation_specs
+            SensorEncoder.of(o, settings, settings.normalize) for o in spec.observation_specs
         )
         width = sum(e.size for e in self.encoders)
+        self.entities = entity_attention(spec.observation_specs, width)  # a BufferSensor's
+        width += self.entities.width if self.entities else 0
         self.branches = tuple(spec.action_spec.discrete_branches)
         actions = spec.action_spec.continuous_size + sum(self.branches)
         gain = math.sqrt(0.125 / h)
@@ -99,13 +72,18 @@ class GroupCritic(nn.Module):
 
     def encode(self, obs: dict[str, torch.Tensor], lead: int) -> torch.Tensor:
         """Sensor encodings of observations with ``lead`` batch dimensions."""
-        parts = []
+        parts, rows = [], []
         for name, encoder in zip(self.sensor_names, self.encoders, strict=True):
             x = obs[name]
-            shape = x.shape[:lead]
-            encoded = encoder(x.reshape(-1, *x.shape[lead:]))
-            parts.append(encoded.reshape(*shape, encoded.shape[-1]))  # also for no groupmates
-        return torch.cat(parts, dim=-1)
+            x = x.reshape(-1, *x.shape[lead:])  # also for no groupmates
+            if encoder.entities:
+                rows.append(x)
+            else:
+                parts.append(encoder(x))
+        if self.entities is not None:
+            parts.append(self.entities(list(parts), rows))
+        encoded = torch.cat(parts, dim=-1)
+        return encoded.reshape(*obs[self.sensor_names[0]].shape[:lead], encoded.shape[-1])
 
     def flat_action(
         self, continuous: torch.Tensor | None, discrete: torch.Tensor | None

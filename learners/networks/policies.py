@@ -40,6 +40,7 @@ from learners.acting.numpy_policy import (
     to_unity,
     trunk_input_width,
 )
+from learners.networks.entities import entity_attention
 from learners.networks.mixed_precision import Autocast, AutocastLayers
 from learners.networks.sensors import SensorEncoder
 from learners.trainer_config.settings import NetworkSettings
@@ -77,9 +78,10 @@ class ActorCritic(nn.Module):
         self.spec, self.settings = spec, settings
         self.sensor_names = [o.name for o in spec.observation_specs]
         self.encoders = nn.ModuleList(
-            SensorEncoder(o.shape, settings, settings.normalize, o.name)
-            for o in spec.observation_specs
+            SensorEncoder.of(o, settings, settings.normalize) for o in spec.observation_specs
         )
+        own = sum(e.size for e in self.encoders)
+        self.entities = entity_attention(spec.observation_specs, own)
         self.goal_sensors = goal_sensors(spec, settings)
         encoded = trunk_input_width(spec, settings)
         # Separate policy and value trunks over shared encoders (ML-Agents' default,
@@ -126,18 +128,25 @@ class ActorCritic(nn.Module):
                 encoder.norm.update(encoder.net(values))
 
     def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        parts = []
-        for name, encoder in zip(self.sensor_names, self.encoders, strict=True):
+        """Each sensor's encoding in sensor order, then the entity attention's (over the
+        variable-length sensors, beside the others); goals condition the rest."""
+        parts: dict[int, torch.Tensor] = {}
+        for i, (name, encoder) in enumerate(zip(self.sensor_names, self.encoders, strict=True)):
+            if encoder.entities:
+                continue
             if encoder.image:  # where mixed precision pays
                 with self.autocast():
-                    parts.append(encoder(obs[name]).float())
+                    parts[i] = encoder(obs[name]).float()
             else:
-                parts.append(encoder(obs[name]))
+                parts[i] = encoder(obs[name])
+        other = [p for i, p in parts.items() if i not in self.goal_sensors]
+        if self.entities is not None:
+            rows = [obs[self.sensor_names[i]] for i in self.entities.sensors]
+            other.append(self.entities(list(parts.values()), rows))
         if not self.goal_sensors:
-            return torch.cat(parts, dim=-1)
-        goal = torch.cat([p for i, p in enumerate(parts) if i in self.goal_sensors], dim=-1)
-        other = torch.cat([p for i, p in enumerate(parts) if i not in self.goal_sensors], dim=-1)
-        conditioned = (other.unsqueeze(-1) * goal.unsqueeze(-2)).flatten(-2)
+            return torch.cat(other, dim=-1)
+        goal = torch.cat([parts[i] for i in self.goal_sensors], dim=-1)
+        conditioned = (torch.cat(other, dim=-1).unsqueeze(-1) * goal.unsqueeze(-2)).flatten(-2)
         return torch.cat([conditioned, goal], dim=-1)
 
     @property

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
+from learners.networks.entities import entity_attention
 from learners.networks.sensors import SensorEncoder
 
 if TYPE_CHECKING:
@@ -28,11 +29,11 @@ class QNetwork(nn.Module):
     def __init__(self, network: ActorCritic, outputs: int, action_size: int = 0) -> None:
         super().__init__()
         self.norms = [e.norm for e in network.encoders]  # a list: not submodules/params
-        self.encoders = nn.ModuleList(
-            SensorEncoder(o.shape, network.settings, sensor=o.name)
-            for o in network.spec.observation_specs
-        )
-        width = sum(e.size for e in self.encoders) + action_size
+        observations = network.spec.observation_specs
+        self.encoders = nn.ModuleList(SensorEncoder.of(o, network.settings) for o in observations)
+        own = sum(e.size for e in self.encoders)
+        self.entities = entity_attention(observations, own)
+        width = own + (self.entities.width if self.entities else 0) + action_size
         layers: list[nn.Module] = []
         for _ in range(network.settings.num_layers):
             layers += [nn.Linear(width, network.settings.hidden_units), nn.SiLU()]
@@ -45,10 +46,15 @@ class QNetwork(nn.Module):
 
     def trunk(self, *inputs: torch.Tensor) -> torch.Tensor:
         """The body's features before its output layer (the recurrent Q runs its LSTM here)."""
-        parts = []
+        parts, rows = [], []
         for encoder, norm, x in zip(self.encoders, self.norms, inputs, strict=False):
+            if encoder.entities:
+                rows.append(x)
+                continue
             x = encoder(x)
             parts.append(norm(x) if norm is not None else x)
+        if self.entities is not None:
+            parts.append(self.entities(list(parts), rows))
         parts += inputs[len(self.encoders) :]  # the action, for continuous Q
         return self.body[:-1](torch.cat(parts, dim=-1))
 

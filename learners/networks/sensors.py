@@ -8,9 +8,10 @@ from __future__ import annotations
 import math
 
 import torch
+from mlagents_envs.base_env import ObservationSpec
 from torch import nn
 
-from learners.acting.numpy_policy import NORM_CLIP, encoder_width
+from learners.acting.numpy_policy import NORM_CLIP, encoder_width, is_entities
 from learners.networks.encoders import visual_encoder
 from learners.trainer_config.settings import NetworkSettings
 
@@ -59,7 +60,9 @@ class RunningNorm(nn.Module):
 class SensorEncoder(nn.Module):
     """Vectors pass through flattened (normalized when ``normalize``); images ``[C, H, W]``
     (float in [0, 1] or uint8) go through ``settings.vis_encode_type``'s encoder to
-    ``hidden_units`` features. ``sensor`` names the image in a too-small error."""
+    ``hidden_units`` features. ``sensor`` names the image in a too-small error. A
+    variable-length sensor's rows (``entities``) are left to ``learners.networks.entities``
+    (width 0 here, never normalized, as ML-Agents' entity embeddings)."""
 
     def __init__(
         self,
@@ -67,12 +70,18 @@ class SensorEncoder(nn.Module):
         settings: NetworkSettings,
         normalize: bool = False,
         sensor: str = "image",
+        entities: bool = False,
     ) -> None:
         super().__init__()
         self.norm: RunningNorm | None = None
         self.image = len(shape) == 3
+        self.entities = entities
+        if entities:
+            self.net: nn.Module = nn.Identity()
+            self.size = 0
+            return
         if self.image:
-            self.net: nn.Module = visual_encoder(
+            self.net = visual_encoder(
                 tuple(shape), settings.vis_encode_type, settings.hidden_units, sensor
             )
         else:
@@ -85,3 +94,11 @@ class SensorEncoder(nn.Module):
         if self.norm is not None:
             return self.norm(self.net(x))
         return self.net(x)
+
+    @classmethod
+    def of(
+        cls, observation: ObservationSpec, settings: NetworkSettings, normalize: bool = False
+    ) -> SensorEncoder:
+        """The encoder of one sensor of a behavior spec."""
+        shape = tuple(observation.shape)
+        return cls(shape, settings, normalize, observation.name, is_entities(observation))

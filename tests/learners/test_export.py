@@ -14,31 +14,39 @@ import torch
 from mlagents_envs.base_env import ActionSpec, BehaviorSpec, ObservationSpec
 
 from driver import cli
-from learners.acting.numpy_policy import ACTION_CLIP
+from learners.acting.numpy_policy import ACTION_CLIP, is_entities
 from learners.host import checkpoint
 from learners.host.checkpoint import network_settings_dict, spec_to_dict
 from learners.host.export import export_checkpoint, export_onnx
 from learners.networks.policies import ActorCritic
 from learners.trainer_config.keys import VIS_ENCODE_TYPES
 from learners.trainer_config.settings import NetworkSettings
-from testkit.segments import GRID, IMAGE, VECTOR
+from testkit.segments import BUFFER, GRID, IMAGE, VECTOR
 
 SPECS = {
     "continuous": BehaviorSpec([VECTOR], ActionSpec(2, ())),  # 3DBall-like
     "discrete": BehaviorSpec([VECTOR], ActionSpec(0, (3, 4, 2))),
     "hybrid": BehaviorSpec([VECTOR, GRID], ActionSpec(2, (3, 2))),
     "image": BehaviorSpec([IMAGE, VECTOR], ActionSpec(1, (4,))),
+    "entities": BehaviorSpec([VECTOR, BUFFER], ActionSpec(0, (3, 3, 3))),  # Sorter-like
 }
 SETTINGS = NetworkSettings(hidden_units=32, num_layers=2, normalize=True)
 CAMERA = ObservationSpec((3, 40, 40), IMAGE.dimension_property, IMAGE.observation_type, "cam")
 
 
 def observations(spec: BehaviorSpec, n: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Random observations; a variable-length sensor's rows padded with zeros after a
+    random count of entities (none included), as Unity pads them."""
     rng = np.random.default_rng(seed)
-    return {
+    obs = {
         o.name: (rng.normal(size=(n, *o.shape)) * 3 + 2).astype(np.float32)
         for o in spec.observation_specs
     }
+    for o in spec.observation_specs:
+        if is_entities(o):
+            present = rng.integers(0, o.shape[0] + 1, n)
+            obs[o.name][np.arange(o.shape[0]) >= present[:, None]] = 0.0
+    return obs
 
 
 def build_network(
