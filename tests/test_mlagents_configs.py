@@ -39,6 +39,7 @@ def test_the_copies_are_the_ones_the_issue_names():
         *(f"ppo/{n}" for n in ("3DBall", "3DBallHard", "3DBall_randomize", "Basic")),
         *(f"ppo/{n}" for n in ("FoodCollector", "GridWorld", "Hallway", "Pyramids")),
         "ppo/PyramidsRND",
+        "ppo/Sorter_curriculum",
         *(f"ppo/{n}" for n in ("Walker", "WallJump")),
         "ppo/WallJump_curriculum",
         *(f"sac/{n}" for n in ("3DBall", "3DBallHard", "Basic", "FoodCollector")),

@@ -26,6 +26,8 @@ _ENTRIES: dict[str, str] = {
     "DungeonEscape": "unitysim.envs.dungeon:DungeonEscape",
     "GridFoodCollector": "unitysim.envs.food_collector:GridFoodCollector",
     "WallJump": "unitysim.envs.walljump:WallJump",
+    # a BufferSensor (variable-length observations), laid out as the example
+    "Sorter": "unitysim.envs.sorter:Sorter",
     # for tests of the rollout side: echoes each agent's last action into its observation
     "Echo": "unitysim.envs.echo:Echo",
 }
