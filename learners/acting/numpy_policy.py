@@ -156,6 +156,7 @@ def initial_weights(
             draws = initial_encoder_weights(prefix, shape, kind, out, rng, observation.name)
             state.update(draws)
     state.update(initial_entity_weights(spec, settings, rng))
+    state.update(initial_entity_weights(spec, settings, rng, "critic_entities"))
     return state
 
 

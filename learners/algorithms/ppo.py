@@ -387,7 +387,8 @@ class PPO:
         heads = self.signals.heads
         parts = [
             self.network.value_of(
-                self.network.encode({n: o[i : i + chunk] for n, o in obs.items()}), heads
+                self.network.encode({n: o[i : i + chunk] for n, o in obs.items()}, critic=True),
+                heads,
             )
             for i in range(0, rows, chunk)
         ]

@@ -209,7 +209,7 @@ class RecurrentPPO(PPO):
         the memory after each one's last real step."""
         net, places = self.network, seqs.rows[at]
         assert net.critic_lstm is not None
-        encoded = net.encode({n: o[places.flatten()] for n, o in rows.obs.items()})
+        encoded = net.encode({n: o[places.flatten()] for n, o in rows.obs.items()}, critic=True)
         critic = net.critic_trunk(encoded).unflatten(0, places.shape)
         start = lstm_state(memory, net.critic_lstm.hidden_size)
         lengths = seqs.valid[at].sum(-1).cpu()
@@ -223,7 +223,7 @@ class RecurrentPPO(PPO):
         """V of the kept next observations at truncated ends, one critic step further."""
         net = self.network
         assert net.critic_lstm is not None
-        critic = net.critic_trunk(net.encode(obs))
+        critic = net.critic_trunk(net.encode(obs, critic=True))
         out = net.recur(net.critic_lstm, critic, memory)[0]
         return net.value_head(out, self.signals.heads).reshape(len(memory), -1)
 

@@ -81,7 +81,9 @@ class ActorCritic(nn.Module):
             SensorEncoder.of(o, settings, settings.normalize) for o in spec.observation_specs
         )
         own = sum(e.size for e in self.encoders)
+        # the actor's and the critic's own attention, as ML-Agents' separate critic has
         self.entities = entity_attention(spec.observation_specs, own)
+        self.critic_entities = entity_attention(spec.observation_specs, own)
         self.goal_sensors = goal_sensors(spec, settings)
         encoded = trunk_input_width(spec, settings)
         # Separate policy and value trunks over shared encoders (ML-Agents' default,
@@ -127,9 +129,20 @@ class ActorCritic(nn.Module):
                 values = obs[name] if rows is None else obs[name][rows]
                 encoder.norm.update(encoder.net(values))
 
-    def encode(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Each sensor's encoding in sensor order, then the entity attention's (over the
-        variable-length sensors, beside the others); goals condition the rest."""
+    def encode(self, obs: dict[str, torch.Tensor], critic: bool = False) -> torch.Tensor:
+        """Each sensor's encoding in sensor order, then the entity attention's (the
+        actor's, or with ``critic`` the critic's) over the variable-length sensors; goals
+        condition the rest."""
+        return self._joined(self._sensor_parts(obs), obs, critic)
+
+    def encode_both(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The actor's and the critic's ``encode``, the sensors encoded once for both
+        (images cost the most here); one tensor twice without a variable-length sensor."""
+        parts = self._sensor_parts(obs)
+        actor = self._joined(parts, obs, False)
+        return actor, actor if self.critic_entities is None else self._joined(parts, obs, True)
+
+    def _sensor_parts(self, obs: dict[str, torch.Tensor]) -> dict[int, torch.Tensor]:
         parts: dict[int, torch.Tensor] = {}
         for i, (name, encoder) in enumerate(zip(self.sensor_names, self.encoders, strict=True)):
             if encoder.entities:
@@ -139,10 +152,16 @@ class ActorCritic(nn.Module):
                     parts[i] = encoder(obs[name]).float()
             else:
                 parts[i] = encoder(obs[name])
+        return parts
+
+    def _joined(
+        self, parts: dict[int, torch.Tensor], obs: dict[str, torch.Tensor], critic: bool
+    ) -> torch.Tensor:
         other = [p for i, p in parts.items() if i not in self.goal_sensors]
-        if self.entities is not None:
-            rows = [obs[self.sensor_names[i]] for i in self.entities.sensors]
-            other.append(self.entities(list(parts.values()), rows))
+        entities = self.critic_entities if critic else self.entities
+        if entities is not None:
+            rows = [obs[self.sensor_names[i]] for i in entities.sensors]
+            other.append(entities(list(parts.values()), rows))
         if not self.goal_sensors:
             return torch.cat(other, dim=-1)
         goal = torch.cat([parts[i] for i in self.goal_sensors], dim=-1)
@@ -180,21 +199,21 @@ class ActorCritic(nn.Module):
         its memory at the sequences' first steps ``[B, memory_size]``."""
         assert self.lstm is not None and self.critic_lstm is not None
         b, length = next(iter(obs.values())).shape[:2]
-        encoded = self.encode({n: o.flatten(0, 1) for n, o in obs.items()})
+        encoded, critic_encoded = self.encode_both({n: o.flatten(0, 1) for n, o in obs.items()})
         actor = self.trunk(encoded).unflatten(0, (b, length))
-        critic = self.critic_trunk(encoded).unflatten(0, (b, length))
+        critic = self.critic_trunk(critic_encoded).unflatten(0, (b, length))
         return self.recur(self.lstm, actor, memory)[0], self.recur(
             self.critic_lstm, critic, critic_memory
         )[0]
 
     def state_value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """V(obs) with the batch dims kept (no trailing 1)."""
-        return self.value_of(self.encode(obs))
+        return self.value_of(self.encode(obs, critic=True))
 
     def value_of(self, encoded: torch.Tensor, heads: Sequence[nn.Module] = ()) -> torch.Tensor:
-        """V from already encoded observations (``encode``'s output); with ``heads`` (an intrinsic
-        signal's value head each, ``learners/reward_signals/intrinsic.py``) ``[..., 1 + H]``, the
-        extrinsic value first."""
+        """V from observations the critic encoded (``encode(obs, critic=True)``); with
+        ``heads`` (an intrinsic signal's value head each, ``learners/reward_signals/
+        intrinsic.py``) ``[..., 1 + H]``, the extrinsic value first."""
         critic = self.critic_trunk(encoded)
         return self.value_head(critic, heads)
 
@@ -295,8 +314,8 @@ class ActorCritic(nn.Module):
         if memories is not None:
             hidden, critic = self.sequence_features(obs, *memories)
         else:
-            encoded = self.encode(obs)  # once for both trunks: images cost the most here
-            hidden, critic = self.trunk(encoded), self.critic_trunk(encoded)
+            encoded, critic_encoded = self.encode_both(obs)
+            hidden, critic = self.trunk(encoded), self.critic_trunk(critic_encoded)
         lead = hidden.shape[:-1]
         log_probs = [torch.zeros(*lead, 0, device=hidden.device)]
         entropy = torch.zeros(lead, device=hidden.device)

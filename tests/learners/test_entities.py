@@ -91,6 +91,10 @@ def test_the_buffer_is_never_normalized_and_its_weights_come_from_the_policy_fac
         for kind in ("weight", "bias")
     }
     assert state["entities.embeddings.0.0.weight"].shape == (128, 128 + SIZE)  # self, then row
+    # the critic's own attention, as ML-Agents' separate critic has: the same layers, other draws
+    critic = {k[7:]: v for k, v in state.items() if k.startswith("critic_entities.")}
+    assert critic.keys() == names
+    assert not np.array_equal(critic["entities.own.0.weight"], state["entities.own.0.weight"])
     # a behavior without a buffer keeps the very weights it had: no draw, no layer
     plain = vector_spec(4, 0, (3, 3, 3))
     rng = np.random.default_rng(0)
@@ -134,7 +138,16 @@ def test_ppo_and_sac_update_through_the_attention():
     assert np.isfinite(report["Losses/Policy Loss"])
     after = ppo.network.state_dict()
     for name in ("entities.own.0.weight", "entities.attention.q.weight"):
-        assert not torch.equal(before[name], after[name]), name  # the loss reaches it
+        for owner in ("", "critic_"):  # the policy's loss one, the value loss the other
+            assert not torch.equal(before[owner + name], after[owner + name]), owner + name
+    with torch.no_grad():  # the critic's attention alone moves the value
+        obs = {"vector": batch[keys.OBS, "vector"], "BufferSensor": batch[keys.OBS, "BufferSensor"]}
+        value = ppo.network.state_value(obs)
+        ppo.network.critic_entities.attention.out.weight.mul_(2.0)
+        assert not torch.allclose(ppo.network.state_value(obs), value)
+        actor = ppo.network.features(obs)
+        ppo.network.critic_entities.own[0].weight.mul_(2.0)
+        torch.testing.assert_close(ppo.network.features(obs), actor)
     sac_base = defaults("sac")
     sac_settings = replace(
         sac_base,
