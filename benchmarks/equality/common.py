@@ -204,12 +204,13 @@ def mlagents_update(
     from mlagents.trainers.trajectory import ObsUtil
 
     update, (count, horizon) = AgentBuffer(), rows["reward"].shape
-    obs_key, next_key = ObsUtil.get_name_at(0), ObsUtil.get_name_at_next(0)
+    sensors = sensor_rows(rows)
     for row in range(count):
         trajectory, done = AgentBuffer(), bool(rows["ends"][row])
         for t in range(horizon):
-            trajectory[obs_key].append(rows["obs"][row, t])
-            trajectory[next_key].append(rows["obs"][row, t + 1])
+            for i, obs in enumerate(sensors):
+                trajectory[ObsUtil.get_name_at(i)].append(obs[row, t])
+                trajectory[ObsUtil.get_name_at_next(i)].append(obs[row, t + 1])
             trajectory[BufferKey.ENVIRONMENT_REWARDS].append(rows["reward"][row, t])
             trajectory[BufferKey.DISCRETE_ACTION].append(np.atleast_1d(rows["action"][row, t]))
             trajectory[BufferKey.CONTINUOUS_ACTION].append(np.zeros(0, np.float32))
@@ -220,7 +221,7 @@ def mlagents_update(
             trajectory[BufferKey.MASKS].append(1.0)
             trajectory[BufferKey.DONE].append(done and t == horizon - 1)
         values, value_next, _ = optimizer.get_trajectory_value_estimates(
-            trajectory, [rows["obs"][row, horizon]], done
+            trajectory, [obs[row, horizon] for obs in sensors], done
         )
         advantages = []
         for name, signal in optimizer.reward_signals.items():
@@ -238,6 +239,14 @@ def mlagents_update(
         trajectory[BufferKey.ADVANTAGES].set(list(np.mean(advantages, axis=0)))
         trajectory.resequence_and_append(update, training_length=policy.sequence_length)
     return train_in_order(update, optimizer, settings.hyperparameters)
+
+
+def sensor_rows(rows: Mapping[str, np.ndarray]) -> list[np.ndarray]:
+    """A case's observations, one array per sensor in spec order: ``obs`` for one sensor,
+    ``obs/0``, ``obs/1``, ... for several."""
+    if "obs" in rows:
+        return [rows["obs"]]
+    return [rows[f"obs/{i}"] for i in range(sum(k.startswith("obs/") for k in rows))]
 
 
 def train_in_order(update: Any, optimizer: Any, h: Any, length: int = 1) -> dict[str, float]:
