@@ -69,7 +69,7 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
     config = service_config(UnityConfig("unitysim:3DBall"), registry, workers, horizon)
     with RolloutService(config, actor_factory, learner) as service:
         service.run(until=lambda m: m.segments > 0, seconds=120)
-        service.run(until=lambda m: service.version >= 4, seconds=60)  # 3 versions acted
+        service.run(until=lambda m: service.version >= 4, seconds=180)  # 3 versions acted
         summary = ray_session.get(learner.summary.remote())
         rows = service.demand.rows(service.live())
     ray_session.kill(learner)
@@ -89,27 +89,28 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
 
 
 def test_the_driver_gets_control_back_while_the_learner_updates(ray_session, registry):
-    """``run(seconds=...)`` returns on time while the learner's update still runs (the
-    driver reads progress and prints summaries meanwhile), instead of blocking on the
-    submission that triggered it. The learner answers ``summary`` during its update."""
-    demand = 300
+    """``run(seconds=...)`` returns while the learner's update still runs (the driver reads
+    progress and prints summaries meanwhile), instead of blocking on the submission that
+    triggered it. The update is held until the test releases it, so "during" is an event:
+    a ``run`` that waited for the update would come back only after the hold's safety stop,
+    with the version already moved on."""
     learner = (
         ray_session.remote(CountingLearner)
-        .options(max_concurrency=2)
-        .remote(demand=demand, update_seconds=8)
+        .options(max_concurrency=2)  # summary and release are answered during the update
+        .remote(demand=300, hold_updates=True)
     )
     config = service_config(UnityConfig("unitysim:3DBall"), registry, horizon=8)
     with RolloutService(config, actor_factory, learner) as service:
-        back_during_update = 0  # run() calls that came back while the 8 s update ran
-        for _ in range(120):
+        back_during_update = 0  # run() calls that came back while the update was held
+        for _ in range(240):  # a safety stop: the first update comes after 300 steps
             service.run(seconds=0.5)
             summary = ray_session.get(learner.summary.remote())
-            if sum(summary["steps"].values()) >= demand:
-                if summary["version"] > 0:
-                    break
-                back_during_update += 1
-        # a collect already under way can end one call early; waiting ends all the others
-        assert back_during_update >= 5, f"run() waited for the learner's update: {summary}"
+            assert summary["version"] == 0, f"run() waited for the learner's update: {summary}"
+            back_during_update += summary["updating"]
+            if back_during_update == 3:
+                break
+        assert back_during_update == 3, summary
+        ray_session.get(learner.release.remote())
         service.run(until=lambda m: service.version >= 1, seconds=120)
         assert service.version == 1
     ray_session.kill(learner)
