@@ -8,7 +8,8 @@ start from our initial weights, the attention's (the self encoding, the entity e
 residual self-attention) of the actor and of the critic among them; ML-Agents' side runs its
 ``ObservationEncoder`` path (``EntityEmbedding``, ``ResidualSelfAttention``) in its PPO
 trainer's steps and ``TorchPPOOptimizer.update``. The weights after the update must agree to
-float precision.
+float precision; the attention keys' biases, whose gradient the softmax over keys cancels, move
+on rounding noise alone on both sides and are shown, not compared.
 
     .venv/bin/python -m benchmarks.equality.check_entities_vs_mlagents --seeds 0 1 2
 """
@@ -184,8 +185,9 @@ def mlagents(case: Path, anchor: Path) -> float:
     modules = {"actor": policy.actor, "critic": optimizer.critic}
     load_ours(modules, ML_NAMES, d)
     figures = mlagents_update(policy, optimizer, settings, dict(d), d["log_prob"])
+    keys = frozenset(f"{owner}entities.attention.k.bias" for owner in ("", "critic_"))
     return max(
-        worst_difference(modules, ML_NAMES, d), worst_report_difference(figures, d, REPORTED)
+        worst_difference(modules, ML_NAMES, d, keys), worst_report_difference(figures, d, REPORTED)
     )
 
 

@@ -149,14 +149,23 @@ def parts(d: Mapping[str, np.ndarray], name: str) -> list[str]:
     return [key.removeprefix(prefix) for key in d if key.startswith(prefix)]
 
 
-def worst_difference(modules: dict, names: dict, d: np.lib.npyio.NpzFile) -> float:
+def worst_difference(
+    modules: dict, names: dict, d: np.lib.npyio.NpzFile, no_gradient: frozenset[str] = frozenset()
+) -> float:
     """The worst difference of ML-Agents' weights after its update from ours, relative to
     how far the update moved each parameter; a parameter it did not move (by less than a
     thousandth of the most any moved: one with no gradient, as an attention key's bias,
-    moves by Adam's step on rounding noise) is compared with that most."""
+    moves by Adam's step on rounding noise) is compared with that most. ``no_gradient``:
+    parameters whose gradient is zero by construction (an attention key's bias, where the
+    softmax over keys cancels it): Adam moves them on rounding noise alone, up to its full
+    step, so they are shown and not compared."""
     rows = []
     for name, (module, theirs) in names.items():
         for part in parts(d, name):
+            if f"{name}.{part}" in no_gradient:
+                moved = float(np.abs(d[f"after/{name}.{part}"] - d[f"initial/{name}.{part}"]).max())
+                print(f"  {name}.{part:<12} no gradient by construction: moved by {moved:.1e}")
+                continue
             mine = d[f"after/{name}.{part}"]
             diff = float(
                 np.abs(modules[module].state_dict()[f"{theirs}.{part}"].numpy() - mine).max()
