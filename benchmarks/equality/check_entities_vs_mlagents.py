@@ -27,8 +27,8 @@ from benchmarks.equality.common import (
     load_ours,
     mlagents_ppo,
     mlagents_update,
-    reported,
     run_sides,
+    save_case,
     update_in_order,
     worst_difference,
     worst_report_difference,
@@ -166,14 +166,7 @@ def ours(seed: int, out: Path) -> None:
     ppo.add(steps, torch.zeros(ROWS * HORIZON, dtype=torch.int64))
     report = update_in_order(ppo)
     after = {k: v.detach().numpy() for k, v in network.state_dict().items()}
-    np.savez(
-        out,
-        log_prob=log_prob.numpy().reshape(ROWS, HORIZON),
-        **data,
-        **{f"initial/{k}": v for k, v in initial.items()},
-        **{f"after/{k}": v for k, v in after.items()},
-        **reported(report, REPORTED),
-    )
+    save_case(out, log_prob.numpy().reshape(ROWS, HORIZON), data, initial, after, report, REPORTED)
 
 
 def mlagents(case: Path, anchor: Path) -> float:

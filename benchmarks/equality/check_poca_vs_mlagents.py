@@ -26,8 +26,8 @@ from benchmarks.equality.common import (
     REPORTED,
     anchor_workarounds,
     load_ours,
-    reported,
     run_sides,
+    save_case,
     train_in_order,
     update_in_order,
     vector_spec,
@@ -174,14 +174,7 @@ def ours(seed: int, out: Path) -> None:
     after = {
         p + k: v.detach().numpy() for p, m in modules.items() for k, v in m.state_dict().items()
     }
-    np.savez(
-        out,
-        log_prob=log_prob.numpy().reshape(ROWS, HORIZON),
-        **d,
-        **{f"initial/{k}": v for k, v in initial.items()},
-        **{f"after/{k}": v for k, v in after.items()},
-        **reported(report, FIGURES),
-    )
+    save_case(out, log_prob.numpy().reshape(ROWS, HORIZON), d, initial, after, report, FIGURES)
 
 
 def mlagents(case_file: Path, anchor: Path) -> float:

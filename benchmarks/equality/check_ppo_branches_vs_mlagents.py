@@ -29,8 +29,8 @@ from benchmarks.equality.common import (
     anchor_workarounds,
     mlagents_update,
     packed_steps,
-    reported,
     run_sides,
+    save_case,
     update_in_order,
     worst_report_difference,
 )
@@ -93,13 +93,8 @@ def ours(seed: int, out: Path) -> None:
     ppo.add(steps, torch.zeros(n, dtype=torch.int64))
     report = update_in_order(ppo)
     after = {k: v.detach().numpy() for k, v in network.state_dict().items()}
-    np.savez(
-        out,
-        log_prob=log_prob.numpy().reshape(ROWS, horizon, -1),
-        **data,
-        **{f"initial/{k}": v for k, v in initial.items()},
-        **{f"after/{k}": v for k, v in after.items()},
-        **reported(report, REPORTED),
+    save_case(
+        out, log_prob.numpy().reshape(ROWS, horizon, -1), data, initial, after, report, REPORTED
     )
 
 

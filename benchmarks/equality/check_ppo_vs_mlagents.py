@@ -35,8 +35,8 @@ from benchmarks.equality.common import (
     mlagents_ppo,
     mlagents_update,
     packed_steps,
-    reported,
     run_sides,
+    save_case,
     update_in_order,
     vector_spec,
     worst_difference,
@@ -88,14 +88,15 @@ def ours(seed: int, out: Path) -> None:
     assert ppo.ready()
     report = update_in_order(ppo)
     after = {k: v.detach().numpy() for k, v in network.state_dict().items()}
-    np.savez(
+    save_case(
         out,
+        log_prob.numpy().reshape(ROWS, horizon),
+        data,
+        initial,
+        after,
+        report,
+        REPORTED,
         horizon=horizon,
-        log_prob=log_prob.numpy().reshape(ROWS, horizon),
-        **data,
-        **{f"initial/{k}": v for k, v in initial.items()},
-        **{f"after/{k}": v for k, v in after.items()},
-        **reported(report, REPORTED),
     )
 
 

@@ -105,6 +105,29 @@ def update_in_order(algorithm: Any) -> dict[str, float]:
         torch.randperm = shuffle
 
 
+def save_case(
+    out: Path,
+    log_prob: np.ndarray,
+    rows: Mapping[str, np.ndarray],
+    initial: Mapping[str, np.ndarray],
+    after: Mapping[str, np.ndarray],
+    report: dict[str, float],
+    tags: tuple[str, ...],
+    **extra: Any,
+) -> None:
+    """Our side of a case for ML-Agents' side to read: the rows, the log-probabilities that
+    acted them, our weights before and after the update, and its figures ``tags``."""
+    np.savez(
+        out,
+        **extra,
+        log_prob=log_prob,
+        **rows,
+        **{f"initial/{k}": v for k, v in initial.items()},
+        **{f"after/{k}": v for k, v in after.items()},
+        **reported(report, tags),
+    )
+
+
 def reported(report: dict[str, float], tags: tuple[str, ...]) -> dict[str, np.ndarray]:
     """Our update's TensorBoard figures ``tags``, to save beside the weights."""
     return {f"report/{tag}": np.array(report[tag]) for tag in tags}
