@@ -265,7 +265,7 @@ class SAC:
         batch = self.steps(sampled)
         obs = self.inputs(sampled)
         alpha = self.log_alpha.detach().exp()
-        target = self.target(sampled, alpha)  # its draw of a' comes first, as in torchrl's
+        target = self.target(sampled, alpha, batch)  # its draw of a' first, as torchrl's
         stored = [batch[CONTINUOUS_ACTION]] if self.continuous else []
         values = self.q_values(self.q, obs, stored)  # [2, B, streams, outputs]
         chosen = taken(values, batch.get(DISCRETE_ACTION, None), self.branches)  # [2, B, S]
@@ -333,11 +333,13 @@ class SAC:
         return torch.stack([q(*inputs, *actions) for q in qs]).unflatten(-1, (self.streams, -1))
 
     @torch.no_grad()
-    def target(self, sampled: TensorDict, alpha: torch.Tensor) -> torch.Tensor:
+    def target(
+        self, sampled: TensorDict, alpha: torch.Tensor, batch: TensorDict | None = None
+    ) -> torch.Tensor:
         """``r + gamma (1 - terminated) V(s')`` with the target Qs: ``V`` of a fresh
         ``a' ~ pi(s')`` (continuous), the expectation over each branch's masked softmax
         (discrete: their mean over branches), both for hybrid actions."""
-        batch = self.steps(sampled)
+        batch = self.steps(sampled) if batch is None else batch  # ``steps``, when known
         nxt = batch[keys.NEXT]
         next_obs = self.inputs(sampled, after=True)
         params = self.policy_params(next_obs)
