@@ -219,7 +219,7 @@ def test_a_restarted_workers_failed_launch_is_retried_but_a_runs_first_is_final(
         f'exec "{launcher}" "$@"\n'
     )
     flaky.chmod(0o755)
-    config = UnityConfig(str(flaky), restarts=RestartPolicy(backoff_s=0.0), timeout_wait=20)
+    config = UnityConfig(str(flaky), restarts=RestartPolicy(backoff_s=0.0))
     first = Collector(config, actor_factory, horizon=10, allocator=allocator)
     with pytest.raises(UnityStartError, match="exited with code 0 before it connected"):
         first.start()  # a run's first launch: a build that exits is a bad build
@@ -261,7 +261,10 @@ def test_a_runs_first_launch_that_is_slow_to_connect_is_retried(allocator, tmp_p
     collector = Collector(config, actor_factory, horizon=10, allocator=allocator)
     try:
         collector.start()  # not restarted: the run's first launch
-        assert collector.unity.restarts == 1 and launches.read_text().count("\n") == 2
+        # the stand-in after the slow launch has the same 10 s, which a loaded machine may
+        # not give it: every launch but the last was retried, whatever their number
+        launched = launches.read_text().count("\n")
+        assert launched >= 2 and collector.unity.restarts == launched - 1, launched
         assert collector.collect(min_steps=1)
     finally:
         collector.close()
