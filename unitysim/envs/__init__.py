@@ -28,6 +28,8 @@ _ENTRIES: dict[str, str] = {
     "WallJump": "unitysim.envs.walljump:WallJump",
     # a BufferSensor (variable-length observations), laid out as the example
     "Sorter": "unitysim.envs.sorter:Sorter",
+    # masked moves on a board of pieces, vector and PNG-compressed multi-channel observations
+    "Match3": "unitysim.envs.match3:Match3",
     # for tests of the rollout side: echoes each agent's last action into its observation
     "Echo": "unitysim.envs.echo:Echo",
 }
