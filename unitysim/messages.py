@@ -96,6 +96,19 @@ def _observations(sensor: Sensor, batch: np.ndarray) -> list[ObservationProto]:
         "observation_type": sensor.observation_type,
         "name": sensor.name,
     }
+    if sensor.png and sensor.stacks > 1:
+        mapping = list(sensor.channel_mapping)
+        return [
+            ObservationProto(
+                compression_type=PNG,
+                compressed_data=b"".join(
+                    png.encode(frame) for frame in row.reshape(sensor.stacks, -1, *row.shape[1:])
+                ),
+                compressed_channel_mapping=mapping,
+                **common,
+            )
+            for row in batch
+        ]
     if sensor.png:
         return [
             ObservationProto(compression_type=PNG, compressed_data=png.encode(row), **common)

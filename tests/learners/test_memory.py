@@ -14,7 +14,7 @@ from mlagents_envs.base_env import BehaviorSpec
 from batches import keys
 from learners.acting.numpy_policy import NumpyActor
 from learners.algorithms.ppo import PPO
-from learners.algorithms.recurrent_ppo import RecurrentPPO, sequences
+from learners.algorithms.recurrent_ppo import RecurrentPPO, SequenceInputs, sequences
 from learners.networks.policies import ActorCritic, numpy_state
 from learners.trainer_config.parse import ConfigError, load_config
 from learners.trainer_config.settings import (
@@ -193,7 +193,10 @@ def test_advantages_are_normalized_over_the_padded_sequences_as_in_mlagents():
     network = memory_network(vector_spec(4, 0, (2,)), length=4)
     learner = ppo(network)
     done = torch.tensor([0, 0, 0, 0, 1, 0, 0, 1], dtype=torch.bool)
-    learner._sequences = sequences(done, 4)
+    memory = torch.zeros(3, network.memory_size)
+    learner._inputs = SequenceInputs(
+        sequences(done, 4), memory, memory, torch.ones(8, dtype=torch.bool)
+    )
     advantage = torch.linspace(-1.0, 2.0, 8)
     padded = np.concatenate([advantage.numpy(), np.zeros(4, np.float32)])
     expected = (advantage.numpy() - padded.mean()) / (padded.std() + 1e-10)

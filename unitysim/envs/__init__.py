@@ -13,6 +13,7 @@ _ENTRIES: dict[str, str] = {
     # learnable, with dynamics close to the originals
     "3DBall": "unitysim.envs.ball3d:Ball3D",
     "3DBallHard": "unitysim.envs.ball3d:Ball3DHard",
+    "Visual3DBall": "unitysim.envs.ball3d:Visual3DBall",
     "Basic": "unitysim.envs.basic:Basic",
     "GridWorld": "unitysim.envs.gridworld:GridWorld",
     # a first-person camera over walled arenas with food, AnimalAI-like

@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import replace
 from types import ModuleType
 
 import numpy as np
@@ -293,6 +294,99 @@ class Ball3DHard(Ball3D):
     def _decisions(self) -> AgentInfos:
         frames = self._observe()
         self.stack.buffer[:] = frames
+        infos = AgentInfos.build(self.ids, [frames], reward=self.reward)
+        self.reward.fill(0.0)
+        return infos
+
+
+# Visual3DBall's camera, from the example's prefab: 7 above and 8 behind the platform's
+# centre, pitched 30 degrees down, a vertical field of view of 60 degrees, 84 x 84 RGB on
+# black, its frames stacked over 4 decisions by a StackingSensor and sent as PNGs
+VISUAL_SIZE, VISUAL_STACK = 84, 4
+CAMERA = np.array([0.0, 7.0, -8.0])  # x, y, z
+_PITCH = np.radians(30.0)
+_SPAN = np.tan(np.radians(30.0)) * ((np.arange(VISUAL_SIZE) + 0.5) / VISUAL_SIZE * 2 - 1)
+# each pixel's ray (x, y, z), rows from the top of the image
+RAYS = (
+    np.array([0.0, -np.sin(_PITCH), np.cos(_PITCH)])[None, None, :]
+    + _SPAN[None, :, None] * np.array([1.0, 0.0, 0.0])
+    - _SPAN[:, None, None] * np.array([0.0, np.cos(_PITCH), np.sin(_PITCH)])
+)
+PLATFORM_RGB = np.array([0.29, 0.55, 0.87])  # lit from above: darker as it tilts
+BALL_RGB = np.array([0.93, 0.62, 0.27])
+
+
+def render(
+    sigma: np.ndarray, x: np.ndarray, z: np.ndarray, y: np.ndarray, radius: float
+) -> np.ndarray:
+    """(n, 3, 84, 84) in [0, 1]: each platform's top face and its ball, ray-traced from
+    the camera (nearest surface wins; the platform's thickness is not drawn)."""
+    n = len(x)
+    d = RAYS.reshape(1, -1, 3)  # [1, P, 3]
+    a, b = np.tan(sigma[0])[:, None], np.tan(sigma[1])[:, None]  # surface y = a x + b z
+    # the plane y - a x - b z = 0 along camera + t d
+    facing = d[..., 1] - a * d[..., 0] - b * d[..., 2]
+    t_plane = -(CAMERA[1] - a * CAMERA[0] - b * CAMERA[2]) / np.where(facing == 0, 1e-9, facing)
+    hit_x = CAMERA[0] + t_plane * d[..., 0]
+    hit_z = CAMERA[2] + t_plane * d[..., 2]
+    on_platform = (t_plane > 0) & (np.abs(hit_x) <= HALF_WIDTH) & (np.abs(hit_z) <= HALF_WIDTH)
+    centre = np.stack([x, y, z], axis=1)[:, None, :] - CAMERA  # [n, 1, 3]
+    along = (d * centre).sum(-1)  # [n, P]
+    gap = (centre**2).sum(-1) - along**2 / (d**2).sum(-1)
+    inside = radius**2 - gap
+    t_ball = (along - np.sqrt(np.maximum(inside, 0.0) * (d**2).sum(-1))) / (d**2).sum(-1)
+    on_ball = (inside > 0) & (t_ball > 0) & (~on_platform | (t_ball < t_plane))
+    light = 1.0 / np.sqrt(1.0 + a**2 + b**2)  # the face's normal against straight down
+    image = np.zeros((n, d.shape[1], 3))
+    image += (on_platform & ~on_ball)[..., None] * (light[..., None] * PLATFORM_RGB)
+    image += on_ball[..., None] * BALL_RGB
+    image = image.reshape(n, VISUAL_SIZE, VISUAL_SIZE, 3).transpose(0, 3, 1, 2)
+    return image.astype(np.float32)
+
+
+class Visual3DBall(Ball3D):
+    """Visual3DBall: 3DBall's platforms and physics seen only through the example's camera
+    (``useVecObs`` off): eight platforms, each image the last four decisions' frames, oldest
+    first, zeros after an episode begins, sent as four PNGs with the StackingSensor's
+    channel mapping. The colours are the stand-in's."""
+
+    name = "Visual3DBall"
+    behaviors = (
+        Behavior(
+            "Visual3DBall?team=0",
+            (
+                replace(
+                    Sensor.camera(
+                        f"StackingSensor_size{VISUAL_STACK}_CameraSensor",
+                        3 * VISUAL_STACK,
+                        VISUAL_SIZE,
+                        VISUAL_SIZE,
+                    ),
+                    stacks=VISUAL_STACK,
+                ),
+            ),
+            continuous=2,
+        ),
+    )
+    agents_per_area = 8
+
+    def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
+        super().__init__(rng, num_areas, params)
+        shape = (len(self.ids), 3 * VISUAL_STACK, VISUAL_SIZE, VISUAL_SIZE)
+        self.frames = np.zeros(shape, dtype=np.float32)
+
+    def _begin_episodes(self, which: np.ndarray) -> None:
+        super()._begin_episodes(which)
+        self.frames[which] = 0.0
+
+    def _observe(self) -> np.ndarray:
+        """The stack with the current frame last, not yet kept (as 3DBallHard's)."""
+        now = render(self.sigma, self.xz[0], self.xz[1], self.y, self.radius)
+        return np.concatenate([self.frames[:, 3:], now], axis=1)
+
+    def _decisions(self) -> AgentInfos:
+        frames = self._observe()
+        self.frames[:] = frames
         infos = AgentInfos.build(self.ids, [frames], reward=self.reward)
         self.reward.fill(0.0)
         return infos

@@ -53,6 +53,24 @@ class Sensor:
     # a camera: Unity renders it, so a player started with -nographics sends it blank
     # (grid sensors are computed, not rendered)
     rendered: bool = False
+    # a StackingSensor over a PNG sensor: its frames' PNGs one after the other and the
+    # channel mapping Unity's StackingSensor sends with them
+    stacks: int = 1
+
+    @property
+    def channel_mapping(self) -> tuple[int, ...]:
+        """``compressed_channel_mapping`` as Unity's ``StackingSensor`` writes it: each
+        frame's channels padded with -1 to a multiple of 3 (a whole number of PNGs), the
+        frames' channels numbered on. Empty for a sensor that stacks nothing."""
+        if self.stacks == 1:
+            return ()
+        channels = self.shape[0] // self.stacks
+        padded = -(-channels // 3) * 3
+        return tuple(
+            frame * channels + c if c < channels else -1
+            for frame in range(self.stacks)
+            for c in range(padded)
+        )
 
     @classmethod
     def vector(cls, name: str, size: int, observation_type: int = DEFAULT_OBS) -> Sensor:
