@@ -58,6 +58,18 @@ class Sequences:
         return len(self.rows)
 
 
+@dataclass(frozen=True)
+class SequenceInputs:
+    """What the update's minibatches read besides ``PPO._bound``, fixed once the values are
+    estimated: the sequences, the actor's and the critic's memory at each one's start
+    ``[S, M]``, and which rows train ``[N]``."""
+
+    sequences: Sequences
+    actor_memory: torch.Tensor
+    critic_memory: torch.Tensor
+    train: torch.Tensor
+
+
 def sequences(done: torch.Tensor, length: int) -> Sequences:
     """Cut the packed pieces (each ends at a ``done`` row) into sequences of ``length``."""
     ends = done.nonzero().squeeze(-1)
@@ -89,9 +101,7 @@ class RecurrentPPO(PPO):
         )
         self.step.graphable = False  # a minibatch's real steps vary in number
         self.carried: OrderedDict[int, torch.Tensor] = OrderedDict()  # agent -> critic memory
-        self._sequences: Sequences | None = None
-        self._memories: tuple[torch.Tensor, torch.Tensor] | None = None  # actor, critic [S, M]
-        self._train: torch.Tensor | None = None
+        self._inputs: SequenceInputs | None = None  # this update's, as PPO's ``_bound``
         self.padding = 0  # the stored pieces' padding to whole sequences
         self.seen = [0, 0]  # steps and padding of every piece so far
 
@@ -151,8 +161,7 @@ class RecurrentPPO(PPO):
         if len(rows.end_rows):
             piece = torch.searchsorted(seqs.starts, rows.end_rows, right=True) - 1
             next_value[rows.end_rows] = self._end_values(rows.end_obs, after_piece[piece])
-        self._sequences = seqs
-        self._memories = (rows.memory[seqs.rows[:, 0]], critic_start)
+        self._inputs = SequenceInputs(seqs, rows.memory[seqs.rows[:, 0]], critic_start, rows.train)
         return value, next_value
 
     def _chains(
@@ -232,9 +241,9 @@ class RecurrentPPO(PPO):
     def normalized(self, advantage: torch.Tensor, train: torch.Tensor) -> torch.Tensor:
         """As ML-Agents' ``_update_policy``: over its update buffer, where each sequence's
         padding holds advantage 0, so the padding counts in the mean and the std."""
-        assert self._sequences is not None
+        assert self._inputs is not None
         trained = advantage[train]
-        count = len(trained) + int((~self._sequences.valid).sum())
+        count = len(trained) + int((~self._inputs.sequences.valid).sum())
         mean = trained.sum() / count
         std = (trained.square().sum() / count - mean.square()).clamp(min=0.0).sqrt()
         return (advantage - mean) / (std + 1e-10)
@@ -242,11 +251,8 @@ class RecurrentPPO(PPO):
     def epochs(self, train: torch.Tensor) -> None:
         """``num_epoch`` passes over the sequences with a step to train, shuffled, in
         minibatches of ``batch_size // sequence_length`` (the remainder left out)."""
-        seqs, h = self._sequences, self.settings.hyperparameters
-        assert seqs is not None and self._bound is not None
-        trained = torch.zeros(len(self._bound.log_prob), dtype=torch.bool, device=train.device)
-        trained[train] = True
-        self._train = trained
+        assert self._inputs is not None
+        seqs, trained, h = self._inputs.sequences, self._inputs.train, self.settings.hyperparameters
         kept = (trained[seqs.rows] & seqs.valid).any(-1).nonzero().squeeze(-1)
         count = len(self.step.index)
         for _ in range(h.num_epoch):
@@ -258,12 +264,11 @@ class RecurrentPPO(PPO):
     def _minibatch_loss(
         self, index: torch.Tensor, scalars: torch.Tensor
     ) -> dict[str, torch.Tensor]:
-        assert self._bound is not None and self._sequences is not None
-        assert self._memories is not None and self._train is not None
-        seqs, bound = self._sequences, self._bound
-        places = seqs.rows[index]  # [B, L]
-        real = seqs.valid[index] & self._train[places]
-        memories = (self._memories[0][index], self._memories[1][index])
+        assert self._bound is not None and self._inputs is not None
+        inputs, bound = self._inputs, self._bound
+        places = inputs.sequences.rows[index]  # [B, L]
+        real = inputs.sequences.valid[index] & inputs.train[places]
+        memories = (inputs.actor_memory[index], inputs.critic_memory[index])
         log_prob, entropy, value = self.network.evaluate(
             {n: o[places] for n, o in bound.obs.items()},
             None if bound.continuous is None else bound.continuous[places],
