@@ -102,6 +102,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _train(options: TrainOptions, starting: BackgroundRay | None, planned: Plan) -> tuple[int, str]:
     import logging
 
+    from driver.local_ray import RayStartError
     from driver.training.train import train
     from rollout.serving.service import RolloutError
 
@@ -112,7 +113,7 @@ def _train(options: TrainOptions, starting: BackgroundRay | None, planned: Plan)
         result = train(options, starting, planned)
     except TrainingError as error:
         return 2, f"error: {error}"
-    except RolloutError as error:
+    except (RolloutError, RayStartError) as error:
         return 1, f"error: {error}"
     rewards = ", ".join(
         f"{name}: {v['mean_reward']:.3f}"

@@ -10,7 +10,8 @@ it), so a thread that returned would take the node down with it.
 Under load a start can fail on a timing of Ray's own: the raylet gives its dashboard agent
 15 s to write its ports, and dies when the agent (a Python process) has not by then. The
 wait for the raylet to register notices that at once, and the lean head starts again, up to
-``LEAN_TRIES`` times, instead of polling a dead raylet for minutes.
+``LEAN_TRIES`` times and on until ``START_WAIT_S`` has passed, instead of polling a dead
+raylet for minutes; if Ray still does not start, ``RayStartError`` says so in one line.
 
 Local mode also leaves out three of the helper processes Ray's head starts, none of which
 a local run uses: the autoscaler monitor (nothing to scale), the log monitor (worker
@@ -57,7 +58,9 @@ START_WAIT_S = 180  # our wait for each (Ray's own runs out on a loaded node); d
 NODE_POLL_S = 0.02  # how often ray.init asks the GCS whether its raylet has registered
 NODE_WAIT_S = 180.0  # give up polling, and leave the wait to Ray, after this long
 LEAN_PROCESSES = ("monitor", "log_monitor", "dashboard")  # Ray's names for what we leave out
-LEAN_TRIES = 3  # lean heads whose raylet died before registering, before Ray's full head
+# lean heads whose raylet died before registering, before Ray's full head: at least this
+# many, and more until START_WAIT_S has passed
+LEAN_TRIES = 3
 
 log = logging.getLogger(__name__)
 
@@ -213,23 +216,52 @@ def init_local_ray(cpus: int, dashboard: bool = False) -> None:
         "logging_level": logging.INFO if dashboard else logging.ERROR,
     }
     if dashboard:
-        ray.init(**options)
+        _plain_init(options, [])
         return
-    for attempt in range(1, LEAN_TRIES + 1):
+    deaths: list[str] = []
+    give_up = time.monotonic() + START_WAIT_S
+    while True:
         try:
             with _lean_head():
                 ray.init(**options)
             return
         except RayletExited as error:  # a raylet that died starting on a busy machine
-            again = "starting it again" if attempt < LEAN_TRIES else "starting Ray's full head"
-            log.warning("Ray's raylet died before it registered (%s); %s", error, again)
+            deaths.append(str(error))
+            again = len(deaths) < LEAN_TRIES or time.monotonic() < give_up
+            log.warning(
+                "Ray's raylet died before it registered (%s); %s",
+                error,
+                "starting it again" if again else "starting Ray's full head",
+            )
+            if not again:
+                break
         except Exception as error:  # a Ray whose internals moved: start it the plain way
             log.warning("lean local Ray did not start (%s); starting Ray's full head", error)
             break
         finally:
             if not ray.is_initialized() and ray._private.worker._global_node is not None:
                 ray.shutdown()  # a head that started, even if not connected
-    ray.init(**options)
+    _plain_init(options, deaths)
+
+
+class RayStartError(Exception):
+    """Local Ray did not come up within its waits: one line saying what was waited for."""
+
+
+def _plain_init(options: dict[str, Any], deaths: list[str]) -> None:
+    try:
+        ray.init(**options)
+    except Exception as error:
+        said = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        before = (
+            f"its raylet died {len(deaths)} times before registering (last: {deaths[-1]}), then "
+            if deaths
+            else ""
+        )
+        raise RayStartError(
+            f"local Ray did not start on this machine: {before}Ray's own start said: {said} "
+            f"(a machine this busy may need fewer other processes)"
+        ) from error
 
 
 class BackgroundRay:

@@ -36,6 +36,7 @@ from tests.waiting import poll_until
 VENV_BIN = Path(sys.executable).parent
 RAY = str(VENV_BIN / "ray")
 CLUSTER_TAG = "UNITY_ROLLOUT_DEPLOY_CLUSTER"
+NODE_TAG = "UNITY_ROLLOUT_DEPLOY_NODE"  # one node's own: what stopping that node alone kills
 LOOPBACK = "127.0.0.1"
 
 NODE_UP_S = 180  # a node's `ray start` up to "Ray runtime started": a safety stop
@@ -97,7 +98,8 @@ class RayNode:
     process: subprocess.Popen
     temp_dir: Path
     log_path: Path
-    tag: str
+    tag: str  # the cluster's
+    own: str  # this node's alone (NODE_TAG)
     ports: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -175,6 +177,8 @@ def _start_node(
         **{CLUSTER_TAG: tag},
         **(extra_env or {}),
     )
+    own = uuid.uuid4().hex
+    env[NODE_TAG] = own
     command = [RAY, "start", "--block", "--disable-usage-stats", f"--num-cpus={num_cpus}"]
     command += [
         f"--node-ip-address={LOOPBACK}",
@@ -209,7 +213,7 @@ def _start_node(
             stderr=subprocess.STDOUT,
             start_new_session=True,  # its own process group: we stop it and nothing else
         )
-    node = RayNode(name, process, temp_dir, log_path, tag, ports)
+    node = RayNode(name, process, temp_dir, log_path, tag, own, ports)
     # Ray's own waits for its GCS and raylet are 60 s and more: this one is a safety stop
     try:
         poll_until(
@@ -220,7 +224,9 @@ def _start_node(
         raise
     if "Ray runtime started" not in node.log():
         failure = node.log()
-        stop_nodes([node])
+        # this node's processes only: a worker node shares the cluster's tag with the head
+        # it failed to join, which its second start needs alive
+        stop_node(node, grace_s=5.0, alone=True)
         state = "" if head is None else f"\n{head_state(head)}"
         raise RuntimeError(f"ray start ({name}) did not come up:\n{failure}{state}")
     return node
@@ -280,15 +286,22 @@ def cluster_processes(tag: str, variable: str = CLUSTER_TAG) -> list[psutil.Proc
     return found
 
 
-def stop_node(node: RayNode, grace_s: float = 10.0) -> None:
+def stop_node(node: RayNode, grace_s: float = 10.0, alone: bool = False) -> None:
     """Stop one node of a live cluster as ``ray stop`` on its machine would (SIGTERM, then
-    SIGKILL after ``grace_s``), leaving the others running."""
+    SIGKILL after ``grace_s``), leaving the others running; ``alone``: then also every
+    process of this node that left its group."""
     _signal_group(node, signal.SIGTERM)
     try:
         node.process.wait(timeout=grace_s)
     except subprocess.TimeoutExpired:
         _signal_group(node, signal.SIGKILL)
         node.process.wait(timeout=10)
+    if alone:
+        _signal_group(node, signal.SIGKILL)
+        for process in cluster_processes(node.own, NODE_TAG):
+            with contextlib.suppress(psutil.NoSuchProcess):
+                process.kill()
+        poll_until(lambda: not cluster_processes(node.own, NODE_TAG), 10)
 
 
 def _signal_group(node: RayNode, signum: int) -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 from driver.local_ray import RAY_MIN_OBJECT_STORE, _shm_free, object_store_bytes
 
 GIB = 1024**3
@@ -92,6 +94,53 @@ def test_a_ray_whose_internals_moved_still_starts_the_plain_way(monkeypatch):
     monkeypatch.setattr(ray._private.worker, "_global_node", None)  # the lean try started none
     local_ray.init_local_ray(2)
     assert calls == [False, True]  # the lean try, then Ray as it comes
+
+
+def _dying_raylets(monkeypatch, deaths: int, plain_fails: bool) -> list[bool]:
+    """``ray.init`` whose lean heads' raylets die ``deaths`` times; then a lean start that
+    works, or (``plain_fails``) Ray's full head timing out. Returns each call's leanness."""
+    import ray
+    import ray._private.node
+
+    from driver import local_ray
+
+    plain = ray._private.node.Node
+    calls: list[bool] = []
+
+    def init(**kwargs: object) -> None:
+        lean = ray._private.node.Node is not plain
+        calls.append(lean)
+        if lean and calls.count(True) <= deaths:
+            raise local_ray.RayletExited("exit 1: Timed out waiting for file metrics_agent_port")
+        if not lean and plain_fails:
+            raise Exception("The current node timed out during startup. This could\nhappen")
+
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.setattr(ray._private.worker, "_global_node", None)
+    return calls
+
+
+def test_raylets_that_keep_dying_are_started_again_until_the_start_wait_is_spent(monkeypatch):
+    from driver import local_ray
+
+    calls = _dying_raylets(monkeypatch, deaths=5, plain_fails=True)
+    local_ray.init_local_ray(2)  # five deaths within START_WAIT_S: a sixth lean start
+    assert calls == [True] * 6
+
+
+def test_a_ray_that_never_starts_is_one_line_saying_what_was_waited_for(monkeypatch):
+    from driver import local_ray
+
+    monkeypatch.setattr(local_ray, "START_WAIT_S", 0)  # spent: LEAN_TRIES, then Ray's head
+    calls = _dying_raylets(monkeypatch, deaths=99, plain_fails=True)
+    with pytest.raises(local_ray.RayStartError) as error:
+        local_ray.init_local_ray(2)
+    assert calls == [True] * local_ray.LEAN_TRIES + [False]
+    message = str(error.value)
+    assert "\n" not in message, message
+    assert f"its raylet died {local_ray.LEAN_TRIES} times before registering" in message
+    assert "metrics_agent_port" in message
+    assert "Ray's own start said: The current node timed out during startup." in message
 
 
 # In a process of its own: the session's Ray is left alone. The first head's raylet start
