@@ -261,10 +261,12 @@ def test_a_runs_first_launch_that_is_slow_to_connect_is_retried(allocator, tmp_p
     collector = Collector(config, actor_factory, horizon=10, allocator=allocator)
     try:
         collector.start()  # not restarted: the run's first launch
-        # the stand-in after the slow launch has the same 10 s, which a loaded machine may
-        # not give it: every launch but the last was retried, whatever their number
+        # every launch but the last was retried, whatever their number: the stand-in after
+        # the slow launch has the same 10 s, which a loaded machine may not give it, and a
+        # launch killed at its timeout may not have reached its first line (the count): the
+        # one that connected saw two launches counted, and came after every counted one
         launched = launches.read_text().count("\n")
-        assert launched >= 2 and collector.unity.restarts == launched - 1, launched
+        assert launched >= 2 and collector.unity.restarts >= launched - 1, launched
         assert collector.collect(min_steps=1)
     finally:
         collector.close()
