@@ -96,7 +96,7 @@ def _observations(sensor: Sensor, batch: np.ndarray) -> list[ObservationProto]:
         "observation_type": sensor.observation_type,
         "name": sensor.name,
     }
-    if sensor.png and sensor.stacks > 1:
+    if sensor.png:  # its channels as PNGs; a StackingSensor's frames each their own, mapped
         mapping = list(sensor.channel_mapping)
         return [
             ObservationProto(
@@ -107,11 +107,6 @@ def _observations(sensor: Sensor, batch: np.ndarray) -> list[ObservationProto]:
                 compressed_channel_mapping=mapping,
                 **common,
             )
-            for row in batch
-        ]
-    if sensor.png:
-        return [
-            ObservationProto(compression_type=PNG, compressed_data=png.encode(row), **common)
             for row in batch
         ]
     return [

@@ -30,6 +30,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import replace
 from types import ModuleType
+from typing import ClassVar
 
 import numpy as np
 
@@ -262,12 +263,47 @@ class Ball3D(SimEnv):
         return fell
 
 
-class Ball3DHard(Ball3D):
+class StackedBall3D(Ball3D):
+    """3DBall observed through one StackingSensor over ``_frame()`` (the behavior's only
+    sensor): the last ``frames`` frames, oldest first, zeros after an episode begins. The
+    current frame is last but not yet kept: terminal rows show it too, and only a decision
+    moves the stack on."""
+
+    frames: ClassVar[int]
+
+    def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
+        super().__init__(rng, num_areas, params)
+        self.shape = self.behaviors[0].sensors[0].shape
+        frame_size = int(np.prod(self.shape)) // self.frames
+        self.stack = FrameStack(len(self.ids), self.frames, frame_size)
+
+    def _frame(self) -> np.ndarray:
+        """Every agent's current frame, (n, *one frame's shape)."""
+        raise NotImplementedError
+
+    def _begin_episodes(self, which: np.ndarray) -> None:
+        super()._begin_episodes(which)
+        self.stack.clear(which)
+
+    def _observe(self) -> np.ndarray:
+        n = len(self.ids)
+        now = self._frame().reshape(n, -1)
+        flat = np.concatenate([self.stack.buffer[:, self.stack.size :], now], axis=1)
+        return flat.reshape(n, *self.shape)
+
+    def _decisions(self) -> AgentInfos:
+        frames = self._observe()
+        self.stack.buffer[:] = frames.reshape(len(self.ids), -1)
+        infos = AgentInfos.build(self.ids, [frames], reward=self.reward)
+        self.reward.fill(0.0)
+        return infos
+
+
+class Ball3DHard(StackedBall3D):
     """3DBallHard: the same platforms and physics, observed as the example's
     ``Ball3DHardAgent`` observes them: no velocity (rotation z, x and the ball's position
     relative to the platform, 5 values), stacked over the last 9 decisions by a
-    StackingSensor (oldest first, zeros after an episode begins), so a policy must infer
-    the ball's motion from the stack."""
+    StackingSensor, so a policy must infer the ball's motion from the stack."""
 
     name = "3DBallHard"
     behaviors = (
@@ -277,26 +313,10 @@ class Ball3DHard(Ball3D):
             continuous=2,
         ),
     )
+    frames = HARD_STACK
 
-    def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
-        super().__init__(rng, num_areas, params)
-        self.stack = FrameStack(len(self.ids), HARD_STACK, 5)
-
-    def _begin_episodes(self, which: np.ndarray) -> None:
-        super()._begin_episodes(which)
-        self.stack.clear(which)
-
-    def _observe(self) -> np.ndarray:
-        """The stack with the current frame last, not yet kept: terminal rows show it
-        too, and only a decision moves the stack on."""
-        return np.concatenate([self.stack.buffer[:, 5:], super()._observe()[:, :5]], axis=1)
-
-    def _decisions(self) -> AgentInfos:
-        frames = self._observe()
-        self.stack.buffer[:] = frames
-        infos = AgentInfos.build(self.ids, [frames], reward=self.reward)
-        self.reward.fill(0.0)
-        return infos
+    def _frame(self) -> np.ndarray:
+        return Ball3D._observe(self)[:, :5]
 
 
 # Visual3DBall's camera, from the example's prefab: 7 above and 8 behind the platform's
@@ -312,6 +332,7 @@ RAYS = (
     + _SPAN[None, :, None] * np.array([1.0, 0.0, 0.0])
     - _SPAN[:, None, None] * np.array([0.0, np.cos(_PITCH), np.sin(_PITCH)])
 )
+RAY_LENGTH2 = (RAYS**2).sum(-1).reshape(1, -1)  # each ray's squared length, [1, P]
 PLATFORM_RGB = np.array([0.29, 0.55, 0.87])  # lit from above: darker as it tilts
 BALL_RGB = np.array([0.93, 0.62, 0.27])
 
@@ -332,9 +353,9 @@ def render(
     on_platform = (t_plane > 0) & (np.abs(hit_x) <= HALF_WIDTH) & (np.abs(hit_z) <= HALF_WIDTH)
     centre = np.stack([x, y, z], axis=1)[:, None, :] - CAMERA  # [n, 1, 3]
     along = (d * centre).sum(-1)  # [n, P]
-    gap = (centre**2).sum(-1) - along**2 / (d**2).sum(-1)
+    gap = (centre**2).sum(-1) - along**2 / RAY_LENGTH2
     inside = radius**2 - gap
-    t_ball = (along - np.sqrt(np.maximum(inside, 0.0) * (d**2).sum(-1))) / (d**2).sum(-1)
+    t_ball = (along - np.sqrt(np.maximum(inside, 0.0) * RAY_LENGTH2)) / RAY_LENGTH2
     on_ball = (inside > 0) & (t_ball > 0) & (~on_platform | (t_ball < t_plane))
     light = 1.0 / np.sqrt(1.0 + a**2 + b**2)  # the face's normal against straight down
     image = np.zeros((n, d.shape[1], 3))
@@ -344,11 +365,10 @@ def render(
     return image.astype(np.float32)
 
 
-class Visual3DBall(Ball3D):
+class Visual3DBall(StackedBall3D):
     """Visual3DBall: 3DBall's platforms and physics seen only through the example's camera
-    (``useVecObs`` off): eight platforms, each image the last four decisions' frames, oldest
-    first, zeros after an episode begins, sent as four PNGs with the StackingSensor's
-    channel mapping. The colours are the stand-in's."""
+    (``useVecObs`` off): eight platforms, each image the last four decisions' frames, sent
+    as four PNGs with the StackingSensor's channel mapping. The colours are the stand-in's."""
 
     name = "Visual3DBall"
     behaviors = (
@@ -369,24 +389,7 @@ class Visual3DBall(Ball3D):
         ),
     )
     agents_per_area = 8
+    frames = VISUAL_STACK
 
-    def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
-        super().__init__(rng, num_areas, params)
-        shape = (len(self.ids), 3 * VISUAL_STACK, VISUAL_SIZE, VISUAL_SIZE)
-        self.frames = np.zeros(shape, dtype=np.float32)
-
-    def _begin_episodes(self, which: np.ndarray) -> None:
-        super()._begin_episodes(which)
-        self.frames[which] = 0.0
-
-    def _observe(self) -> np.ndarray:
-        """The stack with the current frame last, not yet kept (as 3DBallHard's)."""
-        now = render(self.sigma, self.xz[0], self.xz[1], self.y, self.radius)
-        return np.concatenate([self.frames[:, 3:], now], axis=1)
-
-    def _decisions(self) -> AgentInfos:
-        frames = self._observe()
-        self.frames[:] = frames
-        infos = AgentInfos.build(self.ids, [frames], reward=self.reward)
-        self.reward.fill(0.0)
-        return infos
+    def _frame(self) -> np.ndarray:
+        return render(self.sigma, self.xz[0], self.xz[1], self.y, self.radius)
