@@ -38,7 +38,7 @@ SPEC_ENVS = [
     "WallJump",
 ]
 # with no reference dump: laid out from the examples' C# and prefabs
-CONTRACT_ENVS = [*SPEC_ENVS, "Sorter", "Match3", "Visual3DBall"]
+CONTRACT_ENVS = [*SPEC_ENVS, "Sorter", "Match3", "Visual3DBall", "PushBlock", "PushBlockCollab"]
 OBSERVATION_TYPES = {"DEFAULT": DEFAULT_OBS, "GOAL_SIGNAL": GOAL_SIGNAL}
 
 

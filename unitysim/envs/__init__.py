@@ -27,6 +27,8 @@ _ENTRIES: dict[str, str] = {
     "DungeonEscape": "unitysim.envs.dungeon:DungeonEscape",
     "GridFoodCollector": "unitysim.envs.food_collector:GridFoodCollector",
     "WallJump": "unitysim.envs.walljump:WallJump",
+    "PushBlock": "unitysim.envs.push_block:PushBlock",
+    "PushBlockCollab": "unitysim.envs.push_block:PushBlockCollab",
     # a BufferSensor (variable-length observations), laid out as the example
     "Sorter": "unitysim.envs.sorter:Sorter",
     # masked moves on a board of pieces, vector and PNG-compressed multi-channel observations
