@@ -11,17 +11,9 @@ from mlagents_envs.side_channel.environment_parameters_channel import (
 )
 
 from tests.unitysim.test_learnable_envs import check_infos, make, random_actions, run
-from unitysim.envs.animal_arena import (
-    FLOOR,
-    FOOD,
-    PALETTE,
-    SKY,
-    TOP_SPEED,
-    WALL_X,
-    WALL_Y,
-    AnimalArena,
-)
+from unitysim.envs.animal_arena import FOOD, PALETTE, TOP_SPEED, AnimalArena
 from unitysim.envs.base import Actions, AgentInfos, SimEnv
+from unitysim.envs.perception import FLOOR, SKY, WALL_X, WALL_Y
 
 NAME = "AnimalArena?team=0"
 AGENTS = AnimalArena.fields_per_area

@@ -38,7 +38,10 @@ SPEC_ENVS = [
     "WallJump",
 ]
 # with no reference dump: laid out from the examples' C# and prefabs
-CONTRACT_ENVS = [*SPEC_ENVS, "Sorter", "Match3", "Visual3DBall", "PushBlock", "PushBlockCollab"]
+CONTRACT_ENVS = [
+    *SPEC_ENVS,
+    *("Sorter", "Match3", "Visual3DBall", "PushBlock", "PushBlockCollab", "VisualFoodCollector"),
+]
 OBSERVATION_TYPES = {"DEFAULT": DEFAULT_OBS, "GOAL_SIGNAL": GOAL_SIGNAL}
 
 

@@ -26,6 +26,7 @@ _ENTRIES: dict[str, str] = {
     "Pyramids": "unitysim.envs.pyramids:Pyramids",
     "DungeonEscape": "unitysim.envs.dungeon:DungeonEscape",
     "GridFoodCollector": "unitysim.envs.food_collector:GridFoodCollector",
+    "VisualFoodCollector": "unitysim.envs.food_collector:VisualFoodCollector",
     "WallJump": "unitysim.envs.walljump:WallJump",
     "PushBlock": "unitysim.envs.push_block:PushBlock",
     "PushBlockCollab": "unitysim.envs.push_block:PushBlockCollab",

@@ -54,17 +54,11 @@ import numpy as np
 
 from unitysim.envs.arena import AXIS, FAR, ArenaEnv, uniform_in
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+from unitysim.envs.perception import FirstPerson, colours
 
 IMAGE = 84
-FOV = np.radians(70.0)
-FOCAL = IMAGE / 2 / np.tan(FOV / 2)  # pixels per unit of height at unit depth
-# Per image column (0 = leftmost): its angle from the facing direction, counter-clockwise.
-OFFSETS = np.arctan((IMAGE / 2 - (np.arange(IMAGE) + 0.5)) / FOCAL)
-COS_OFFSETS = np.cos(OFFSETS).astype(np.float32)
-ROWS = (np.arange(IMAGE, dtype=np.float32) + 0.5)[None, :, None]  # pixel centres (1, H, 1)
-HORIZON = np.float32(IMAGE / 2)
-CAMERA_HEIGHT, WALL_HEIGHT = 0.5, 1.5
-SKY, WALL_X, WALL_Y, FLOOR, FOOD = range(5)
+CAMERA = FirstPerson(IMAGE, 70.0, eye=0.5, wall_height=1.5)
+FOOD = 4  # after FirstPerson's scene codes (sky, wall x, wall y, floor)
 # Colours as k/255 so that PNG is lossless; food is the only green-dominant colour.
 PALETTE = np.array(
     [[150, 190, 230], [170, 170, 170], [120, 120, 120], [110, 90, 70], [40, 210, 40]],
@@ -178,38 +172,10 @@ class AnimalArena(ArenaEnv):
         return [self.camera(rows), velocity]
 
     def camera(self, rows: np.ndarray) -> np.ndarray:
-        """First-person images (k, 3, H, W) in [0, 1] of ``rows``: one ray per column."""
-        pos = self.pos[rows].astype(np.float32)
-        angle = (self.heading[rows, None] + OFFSETS).astype(np.float32)
-        dx, dy = np.cos(angle), np.sin(angle)  # (k, W)
-        # walls: where the ray leaves the square, per axis
-        half = self.half[rows, None].astype(np.float32)
-        tx = (half - pos[:, :1] * np.sign(dx)) / np.maximum(np.abs(dx), 1e-6)
-        ty = (half - pos[:, 1:] * np.sign(dy)) / np.maximum(np.abs(dy), 1e-6)
-        depth = np.minimum(tx, ty) * COS_OFFSETS
-        wall = np.where(tx < ty, WALL_X, WALL_Y).astype(np.uint8)[:, None]
-        wall_top = (HORIZON - FOCAL * (WALL_HEIGHT - CAMERA_HEIGHT) / depth)[:, None]
-        wall_bottom = (HORIZON + FOCAL * CAMERA_HEIGHT / depth)[:, None]
-        y = ROWS
-        code = np.where(y < wall_top, SKY, np.where(y < wall_bottom, wall, FLOOR))
-        count = int(self.present[rows].sum(axis=1).max(initial=0))
-        if count == 0:
-            return np.take(PALETTE_CHANNELS, code, axis=1).transpose(1, 0, 2, 3)
-        # food: the nearest sphere each column's ray passes through (its vertical section)
-        rel = (self.food[rows, :count] - self.pos[rows, None]).astype(np.float32)
-        along = rel[:, :, :1] * dx[:, None] + rel[:, :, 1:] * dy[:, None]  # (k, count, W)
-        aside = rel[:, :, :1] * dy[:, None] - rel[:, :, 1:] * dx[:, None]
-        radius = self.radius[rows, None, None].astype(np.float32)
-        hit = self.present[rows, :count, None] & (along > 0.0) & (aside * aside < radius**2)
-        along = np.where(hit, along, np.inf)
-        nearest = along.argmin(axis=1)[:, None]  # (k, 1, W)
-        distance = np.take_along_axis(along, nearest, axis=1)[:, 0]
-        off = np.take_along_axis(aside, nearest, axis=1)[:, 0]
-        chord = np.sqrt(np.maximum(radius[:, 0] ** 2 - off * off, 0.0))  # half height
-        seen = np.isfinite(distance)
-        z = np.where(seen, distance, 1.0) * COS_OFFSETS
-        top = HORIZON - FOCAL * (radius[:, 0] + chord - CAMERA_HEIGHT) / z
-        bottom = HORIZON + FOCAL * (CAMERA_HEIGHT - radius[:, 0] + chord) / z
-        top = np.where(seen, top, np.inf)[:, None]
-        code = np.where((y >= top) & (y < bottom[:, None]), FOOD, code)
-        return np.take(PALETTE_CHANNELS, code, axis=1).transpose(1, 0, 2, 3)
+        """First-person images (k, 3, H, W) in [0, 1] of ``rows``."""
+        code = np.where(self.present[rows], FOOD, -1)
+        radius = np.broadcast_to(self.radius[rows, None], code.shape)
+        image = CAMERA.codes(
+            self.pos[rows], self.heading[rows], self.half[rows], self.food[rows], radius, code
+        )
+        return colours(image, PALETTE_CHANNELS)

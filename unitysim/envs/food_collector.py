@@ -1,4 +1,5 @@
-"""GridFoodCollector: eat the good food, avoid the poison, freeze rivals (spec-faithful).
+"""GridFoodCollector and VisualFoodCollector: eat the good food, avoid the poison, freeze
+rivals (spec-faithful).
 
 Four 40 x 40 fields with five agents each (ids 0..19, no groups) and 20 pieces of food and
 10 of poison per field. Touching food gives +1, poison -1; the piece reappears elsewhere.
@@ -16,6 +17,14 @@ wall. It is (5, 40, 40) with dimension properties (1, 2, 2). A real GridSensor m
 as PNG or as raw floats (its compression setting); we send raw floats: PNG-encoding 20
 agents' grids cost the stand-in ~12 ms per step, floats well under 1 ms (GridWorld keeps
 the PNG path exercised).
+
+**VisualFoodCollector** plays the same rules with the sensors of release 21's
+``VisualFoodCollectorArea`` prefab: two fields of four agents (ids 0..7), each seeing an
+84 x 84 RGB ``CameraSensor`` (first person, 60° field of view, a PNG) and a
+``VectorSensor_size1``, its frozen flag (``useVectorFrozenFlag``). The camera shows the
+walls, green food, red poison and the other agents, blue or, frozen, white. The real area
+is larger (food spawned within 45 of its centre, 25 pieces of each kind); the stand-in
+keeps GridFoodCollector's field.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ import numpy as np
 
 from unitysim.envs.arena import FAR, ArenaEnv, drive, limits, steer, uniform_in
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+from unitysim.envs.perception import FirstPerson, colours
 
 HALF = (20.0, 20.0)
 AGENTS = 5
@@ -56,6 +66,7 @@ class GridFoodCollector(ArenaEnv):
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
+        self.per_field = len(self.layout)
         self.laser = np.zeros(self.n, dtype=bool)
         self.frozen = np.zeros(self.n, dtype=np.int64)  # physics steps left frozen
         self.food = np.zeros((self.fields, len(KIND), 2))
@@ -84,9 +95,9 @@ class GridFoodCollector(ArenaEnv):
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
         active = self.frozen == 0
         drive(self.pos, self.heading, self.motion * active, self.turn * active, *LIMITS)
-        rel = self.food[:, None] - self.pos.reshape(self.fields, AGENTS, 1, 2)
+        rel = self.food[:, None] - self.pos.reshape(self.fields, self.per_field, 1, 2)
         near = np.einsum("fpkc,fpkc->fpk", rel, rel) < (2 * RADIUS) ** 2
-        eaten = near & active.reshape(self.fields, AGENTS, 1)
+        eaten = near & active.reshape(self.fields, self.per_field, 1)
         if eaten.any():
             self.reward += eaten.reshape(self.n, -1) @ VALUE
             taken = eaten.any(axis=1)
@@ -100,14 +111,14 @@ class GridFoodCollector(ArenaEnv):
 
     def _lasered(self, shooting: np.ndarray) -> np.ndarray:
         """Bool (n,): agents in the beam of a shooting agent of their field."""
-        pos = self.pos.reshape(self.fields, AGENTS, 2)
-        c = np.cos(self.heading).reshape(self.fields, AGENTS, 1)
-        s = np.sin(self.heading).reshape(self.fields, AGENTS, 1)
+        pos = self.pos.reshape(self.fields, self.per_field, 2)
+        c = np.cos(self.heading).reshape(self.fields, self.per_field, 1)
+        s = np.sin(self.heading).reshape(self.fields, self.per_field, 1)
         rel = pos[:, None, :, :] - pos[:, :, None, :]  # [field, shooter, target]
         ahead = c * rel[..., 0] + s * rel[..., 1]
         side = c * rel[..., 1] - s * rel[..., 0]
         beam = (ahead > 0.0) & (ahead < self.beam) & (np.abs(side) < 1.0)
-        return (beam & shooting.reshape(self.fields, AGENTS, 1)).any(axis=1).reshape(-1)
+        return (beam & shooting.reshape(self.fields, self.per_field, 1)).any(axis=1).reshape(-1)
 
     def _observe(self, behavior: int, rows: np.ndarray) -> list[np.ndarray]:
         k, fields = len(rows), self.field[rows]
@@ -124,10 +135,10 @@ class GridFoodCollector(ArenaEnv):
             np.maximum(np.abs(wx), np.abs(wy)), HALF[0], out=grid[:, WALL_TAG], casting="unsafe"
         )
         # food, poison and the other agents of the field, one tag per cell (the last wins)
-        others = self.pos.reshape(self.fields, AGENTS, 2)[fields].copy()
+        others = self.pos.reshape(self.fields, self.per_field, 2)[fields].copy()
         others[np.arange(k), self.local[rows]] = FAR  # not itself
         points = np.concatenate([self.food[fields], others], axis=1)
-        frozen = (self.frozen > 0).reshape(self.fields, AGENTS)[fields]
+        frozen = (self.frozen > 0).reshape(self.fields, self.per_field)[fields]
         tags = np.concatenate(
             [np.broadcast_to(KIND, (k, len(KIND))), np.where(frozen, FROZEN_TAG, AGENT_TAG)],
             axis=1,
@@ -149,3 +160,57 @@ class GridFoodCollector(ArenaEnv):
         mask = np.zeros((len(rows), 2), dtype=bool)
         mask[:, 1] = self.frozen[rows] > 0  # no laser while frozen
         return mask
+
+
+CAMERA = FirstPerson(84, 60.0, eye=0.5, wall_height=1.5)
+FOOD_CODE, POISON_CODE, AGENT_CODE, FROZEN_CODE = range(4, 8)  # after the scene's codes
+PALETTE_CHANNELS = np.ascontiguousarray(
+    np.array(
+        [
+            [150, 190, 230],  # sky
+            [170, 170, 170],  # walls along x
+            [120, 120, 120],  # walls along y
+            [110, 90, 70],  # floor
+            [40, 210, 40],  # food
+            [210, 40, 40],  # poison
+            [40, 40, 210],  # an agent
+            [240, 240, 240],  # a frozen agent
+        ],
+        dtype=np.float32,
+    ).T
+    / np.float32(255.0)  # k/255: PNG is lossless
+)
+
+
+class VisualFoodCollector(GridFoodCollector):
+    name = "VisualFoodCollector"
+    behaviors = (
+        Behavior(
+            "VisualFoodCollector?team=0",
+            (Sensor.camera("CameraSensor", 3, 84, 84), Sensor.vector("VectorSensor_size1", 1)),
+            continuous=3,
+            branches=(2,),
+        ),
+    )
+    fields_per_area = 2
+    layout = ((0, 0),) * 4
+
+    def _observe(self, behavior: int, rows: np.ndarray) -> list[np.ndarray]:
+        k, fields = len(rows), self.field[rows]
+        others = self.pos.reshape(self.fields, self.per_field, 2)[fields]
+        frozen = (self.frozen > 0).reshape(self.fields, self.per_field)[fields]
+        agents = np.where(frozen, FROZEN_CODE, AGENT_CODE)
+        agents[np.arange(k), self.local[rows]] = -1  # not itself
+        code = np.concatenate(
+            [
+                np.broadcast_to(np.where(KIND == FOOD_TAG, FOOD_CODE, POISON_CODE), (k, len(KIND))),
+                agents,
+            ],
+            axis=1,
+        )
+        objects = np.concatenate([self.food[fields], others], axis=1)
+        radius = np.full(code.shape, RADIUS)
+        half = np.full(k, HALF[0])
+        image = CAMERA.codes(self.pos[rows], self.heading[rows], half, objects, radius, code)
+        frozen_flag = (self.frozen[rows, None] > 0).astype(np.float32)
+        return [colours(image, PALETTE_CHANNELS), frozen_flag]

@@ -11,6 +11,9 @@ bulk of their cost, and tests exercise them directly:
 - :class:`Rays` and :func:`perceive`: one sensor's fan, and several sensors that see the
   same boxes cast at once.
 - :class:`FrameStack`: StackingSensor (oldest frame first, zeros after an episode begins).
+- :class:`FirstPerson`: a camera at the agent's eye over a walled square floor with discs
+  standing on it (food, other agents), one ray per image column; it gives colour codes
+  that each environment maps to its palette.
 """
 
 from __future__ import annotations
@@ -172,3 +175,91 @@ class FrameStack:
 
     def clear(self, which: np.ndarray) -> None:
         self.buffer[which] = 0.0
+
+
+SKY, WALL_X, WALL_Y, FLOOR = range(4)  # FirstPerson's scene codes; objects bring their own
+
+
+@dataclass(frozen=True)
+class FirstPerson:
+    """A pinhole camera of ``size`` x ``size`` pixels and a horizontal field of view of
+    ``fov_degrees``, ``eye`` above the floor, looking level along the agent's heading.
+
+    Walls are ``wall_height`` tall on the square's edges, in two shades (one per axis, so
+    corners show); each object is a sphere of its radius resting on the floor, drawn as its
+    vertical section through the column's ray, the nearest one in front."""
+
+    size: int
+    fov_degrees: float
+    eye: float
+    wall_height: float
+
+    @functools.cached_property
+    def _columns(self) -> tuple[float, np.ndarray, np.ndarray]:
+        focal = self.size / 2 / np.tan(np.radians(self.fov_degrees) / 2)
+        # per column (0 = leftmost): its angle from the heading, counter-clockwise
+        offsets = np.arctan((self.size / 2 - (np.arange(self.size) + 0.5)) / focal)
+        return float(focal), offsets, np.cos(offsets).astype(np.float32)
+
+    def codes(
+        self,
+        pos: np.ndarray,
+        heading: np.ndarray,
+        half: np.ndarray,
+        objects: np.ndarray,
+        radius: np.ndarray,
+        code: np.ndarray,
+    ) -> np.ndarray:
+        """(k, H, W) uint8 codes: cameras at ``pos`` (k, 2) facing ``heading`` (k,) in
+        squares of ``half`` (k,); objects (k, m, 2) of ``radius`` and ``code`` (k, m) each,
+        a code < 0 for an absent one."""
+        focal, offsets, cos_offsets = self._columns
+        horizon = np.float32(self.size / 2)
+        rows = (np.arange(self.size, dtype=np.float32) + 0.5)[None, :, None]
+        pos = pos.astype(np.float32)
+        angle = (heading[:, None] + offsets).astype(np.float32)
+        dx, dy = np.cos(angle), np.sin(angle)  # (k, W)
+        # walls: where the ray leaves the square, per axis
+        half = half[:, None].astype(np.float32)
+        tx = (half - pos[:, :1] * np.sign(dx)) / np.maximum(np.abs(dx), 1e-6)
+        ty = (half - pos[:, 1:] * np.sign(dy)) / np.maximum(np.abs(dy), 1e-6)
+        depth = np.minimum(tx, ty) * cos_offsets
+        wall = np.where(tx < ty, WALL_X, WALL_Y).astype(np.uint8)[:, None]
+        wall_top = (horizon - focal * (self.wall_height - self.eye) / depth)[:, None]
+        wall_bottom = (horizon + focal * self.eye / depth)[:, None]
+        image = np.where(rows < wall_top, SKY, np.where(rows < wall_bottom, wall, FLOOR))
+        present = code >= 0
+        count = int(present.sum(axis=1).max(initial=0))
+        if count == 0:
+            return image.astype(np.uint8)
+        # the objects present first, so that ``count`` columns hold them all
+        order = np.argsort(~present, axis=1, kind="stable")[:, :count]
+        objects = np.take_along_axis(objects, order[..., None], axis=1)
+        radius = np.take_along_axis(radius, order, axis=1).astype(np.float32)[..., None]
+        code = np.take_along_axis(code, order, axis=1)
+        rel = (objects - pos[:, None]).astype(np.float32)
+        along = rel[:, :, :1] * dx[:, None] + rel[:, :, 1:] * dy[:, None]  # (k, count, W)
+        aside = rel[:, :, :1] * dy[:, None] - rel[:, :, 1:] * dx[:, None]
+        hit = (code[..., None] >= 0) & (along > 0.0) & (aside * aside < radius**2)
+        along = np.where(hit, along, np.inf)
+        nearest = along.argmin(axis=1)[:, None]  # (k, 1, W)
+        distance = np.take_along_axis(along, nearest, axis=1)[:, 0]
+        off = np.take_along_axis(aside, nearest, axis=1)[:, 0]
+        size = np.take_along_axis(np.broadcast_to(radius, along.shape), nearest, axis=1)[:, 0]
+        what = np.take_along_axis(np.broadcast_to(code[..., None], along.shape), nearest, 1)
+        chord = np.sqrt(np.maximum(size**2 - off * off, 0.0))  # half the section's height
+        seen = np.isfinite(distance)
+        z = np.where(seen, distance, 1.0) * cos_offsets
+        top = horizon - focal * (size + chord - self.eye) / z
+        bottom = horizon + focal * (self.eye - size + chord) / z
+        top = np.where(seen, top, np.inf)[:, None]
+        inside = (rows >= top) & (rows < bottom[:, None])
+        return np.where(inside, what, image).astype(np.uint8)
+
+
+def colours(codes: np.ndarray, palette_channels: np.ndarray) -> np.ndarray:
+    """(k, 3, H, W) images of :meth:`FirstPerson.codes`' (k, H, W), ``palette_channels``
+    (3, codes) giving each code's RGB."""
+    k, height, width = codes.shape
+    pixels = np.take(palette_channels, codes.reshape(k, -1), axis=1)
+    return pixels.reshape(3, k, height, width).transpose(1, 0, 2, 3)
