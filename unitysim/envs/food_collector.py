@@ -13,10 +13,10 @@ so terminal and next decision share a message; then the field's food is laid out
 The one sensor is the example's GridSensor-OneHot: 40 x 40 cells of 1 around the agent,
 turned with it (row 0 is 20 ahead, column 0 is 20 to the left), channels food, agent,
 wall, poison and frozen agent, one-hot per cell (empty cells all 0); outside the field is
-wall. It is (5, 40, 40) with dimension properties (1, 2, 2). A real GridSensor may send it
-as PNG or as raw floats (its compression setting); we send raw floats: PNG-encoding 20
-agents' grids cost the stand-in ~12 ms per step, floats well under 1 ms (GridWorld keeps
-the PNG path exercised).
+wall. It is (5, 40, 40) with dimension properties (1, 2, 2), sent PNG-compressed as release
+21's ``FoodCollectorArea`` prefab sets it (``m_CompressionType`` 1): two PNGs an agent, the
+second padded, which mlagents-envs cuts back to five channels. Encoding 20 agents' grids
+takes about 3.4 ms a step against 0.8 ms for copying the floats, and is 76 times smaller.
 
 **VisualFoodCollector** plays the same rules with the sensors of release 21's
 ``VisualFoodCollectorArea`` prefab: two fields of four agents (ids 0..7), each seeing an
@@ -56,7 +56,7 @@ class GridFoodCollector(ArenaEnv):
     behaviors = (
         Behavior(
             "GridFoodCollector?team=0",
-            (Sensor.visual("GridSensor-OneHot", 5, GRID, GRID, png=False),),
+            (Sensor.visual("GridSensor-OneHot", 5, GRID, GRID),),
             continuous=3,
             branches=(2,),
         ),

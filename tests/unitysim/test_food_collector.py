@@ -1,5 +1,6 @@
-"""VisualFoodCollector's stand-in: the prefab's spec through the real client, what its
-first-person camera shows, and the frozen flag beside it."""
+"""The FoodCollector stand-ins through the real client: GridFoodCollector's five-channel
+grid decoded from its PNGs; VisualFoodCollector's spec, what its first-person camera shows
+and the frozen flag beside it."""
 
 from __future__ import annotations
 
@@ -16,6 +17,19 @@ from unitysim.envs.food_collector import (
 )
 
 NAME = "VisualFoodCollector?team=0"
+
+
+def test_the_real_client_decodes_the_grid_of_five_channels_from_two_pngs(open_env):
+    with open_env("GridFoodCollector", no_graphics=True) as env:
+        env.reset()
+        (spec,) = env.behavior_specs["GridFoodCollector?team=0"].observation_specs
+        assert (spec.name, spec.shape) == ("GridSensor-OneHot", (5, 40, 40))
+        decisions, _ = env.get_steps("GridFoodCollector?team=0")
+        grid = decisions.obs[0]
+        assert grid.shape == (20, 5, 40, 40)
+        assert set(np.unique(grid).tolist()) == {0.0, 1.0}  # exact: one-hot survives PNG
+        assert (grid.sum(1) <= 1).all()
+        assert grid[:, 0].any() and grid[:, 2].any() and grid[:, 3].any()  # food, wall, poison
 
 
 def test_the_real_client_sees_the_prefabs_camera_and_frozen_flag(open_env):
