@@ -13,6 +13,7 @@ group, then SIGKILLs whatever still carries the tag, and reports anything that s
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import random
 import secrets
@@ -22,6 +23,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -40,9 +42,10 @@ NODE_TAG = "UNITY_ROLLOUT_DEPLOY_NODE"  # one node's own: what stopping that nod
 LOOPBACK = "127.0.0.1"
 
 NODE_UP_S = 180  # a node's `ray start` up to "Ray runtime started": a safety stop
-# A test that starts a private cluster: each node may take two starts of up to NODE_UP_S on a
-# loaded machine (Ray's own 30-s wait for the raylet to register ran out there), then the
-# test itself: the suite's 300 s per test would stop it mid-start (pytest-timeout).
+# A test that starts a private cluster: on a loaded machine each node may take starts for
+# START_WAIT_S and one more of up to NODE_UP_S (Ray's own 30-s wait for the raylet to
+# register ran out there), then the test itself: the suite's 300 s per test would stop it
+# mid-start (pytest-timeout).
 CLUSTER_TEST_TIMEOUT_S = 1500
 
 
@@ -134,15 +137,20 @@ def start_node(
     loopback: bool = False,
 ) -> RayNode:
     """Start a head (``head`` None) or a worker node of ``head``; returns once it is up. A node
-    that did not come up is stopped and started once more (on two loaded cores a head's
-    GCS has missed Ray's deadline for its node info, and a worker node has waited on the
-    head's GCS for a minute)."""
+    that did not come up is stopped and started again, as KubeRay restarts a pod's
+    ``ray start``, at least once and until ``START_WAIT_S`` has passed: on two loaded cores a
+    head's GCS has missed Ray's deadline for its node info, a worker node has waited on the
+    head's GCS for a minute, and two starts of a joining node in a row have met Ray's
+    deadline for its node info (busy run J2)."""
     args = (name, token, tag, head, num_cpus, extra_env, loopback)
-    try:
-        return _start_node(*args)
-    except RuntimeError:
-        pass
-    return _start_node(*args)
+    deadline = time.monotonic() + START_WAIT_S
+    for attempt in itertools.count(1):
+        try:
+            return _start_node(*args)
+        except RuntimeError:
+            if attempt >= 2 and time.monotonic() >= deadline:
+                raise
+    raise AssertionError("unreachable")
 
 
 def _start_node(
