@@ -54,16 +54,12 @@ import numpy as np
 
 from unitysim.envs.arena import AXIS, FAR, ArenaEnv, uniform_in
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
-from unitysim.envs.perception import FirstPerson, colours
+from unitysim.envs.perception import FirstPerson, colours, palette
 
 IMAGE = 84
 CAMERA = FirstPerson(IMAGE, 70.0, eye=0.5, wall_height=1.5)
 FOOD = 4  # after FirstPerson's scene codes (sky, wall x, wall y, floor)
-# Colours as k/255 so that PNG is lossless; food is the only green-dominant colour.
-PALETTE = np.array(
-    [[150, 190, 230], [170, 170, 170], [120, 120, 120], [110, 90, 70], [40, 210, 40]],
-    dtype=np.float32,
-) / np.float32(255.0)
+PALETTE = palette((40, 210, 40))  # food is the only green-dominant colour
 PALETTE_CHANNELS = np.ascontiguousarray(PALETTE.T)  # (3, codes)
 
 AGENT_RADIUS = 0.5

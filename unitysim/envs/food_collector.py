@@ -33,7 +33,7 @@ import numpy as np
 
 from unitysim.envs.arena import FAR, ArenaEnv, drive, limits, steer, uniform_in
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
-from unitysim.envs.perception import FirstPerson, colours
+from unitysim.envs.perception import FirstPerson, colours, palette
 
 HALF = (20.0, 20.0)
 AGENTS = 5
@@ -164,21 +164,10 @@ class GridFoodCollector(ArenaEnv):
 
 CAMERA = FirstPerson(84, 60.0, eye=0.5, wall_height=1.5)
 FOOD_CODE, POISON_CODE, AGENT_CODE, FROZEN_CODE = range(4, 8)  # after the scene's codes
+ITEM_CODES = np.where(KIND == FOOD_TAG, FOOD_CODE, POISON_CODE)
+# food green, poison red, an agent blue, a frozen agent white
 PALETTE_CHANNELS = np.ascontiguousarray(
-    np.array(
-        [
-            [150, 190, 230],  # sky
-            [170, 170, 170],  # walls along x
-            [120, 120, 120],  # walls along y
-            [110, 90, 70],  # floor
-            [40, 210, 40],  # food
-            [210, 40, 40],  # poison
-            [40, 40, 210],  # an agent
-            [240, 240, 240],  # a frozen agent
-        ],
-        dtype=np.float32,
-    ).T
-    / np.float32(255.0)  # k/255: PNG is lossless
+    palette((40, 210, 40), (210, 40, 40), (40, 40, 210), (240, 240, 240)).T
 )
 
 
@@ -203,7 +192,7 @@ class VisualFoodCollector(GridFoodCollector):
         agents[np.arange(k), self.local[rows]] = -1  # not itself
         code = np.concatenate(
             [
-                np.broadcast_to(np.where(KIND == FOOD_TAG, FOOD_CODE, POISON_CODE), (k, len(KIND))),
+                np.broadcast_to(ITEM_CODES, (k, len(KIND))),
                 agents,
             ],
             axis=1,

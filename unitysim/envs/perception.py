@@ -178,6 +178,13 @@ class FrameStack:
 
 
 SKY, WALL_X, WALL_Y, FLOOR = range(4)  # FirstPerson's scene codes; objects bring their own
+# their colours, as k/255 so that PNG is lossless
+SCENE_RGB = ((150, 190, 230), (170, 170, 170), (120, 120, 120), (110, 90, 70))
+
+
+def palette(*objects: tuple[int, int, int]) -> np.ndarray:
+    """(codes, 3) RGB in [0, 1]: the scene's colours, then ``objects``' (codes 4, 5, ...)."""
+    return np.array([*SCENE_RGB, *objects], dtype=np.float32) / np.float32(255.0)
 
 
 @dataclass(frozen=True)
