@@ -2,7 +2,8 @@
 
 Ten independent walkers (ids 0..9, no groups) on 30 x 30 fields, as in the dump: one
 ``VectorSensor_size243`` and 39 continuous actions. There is no rigid-body physics here;
-the body is a reduced model that keeps what matters for learning:
+the body is :mod:`unitysim.envs.jointed`'s reduced model, which keeps what matters for
+learning:
 
 - 13 joints with 2 target angles each (actions 0-25, times 1 rad) and a strength each
   (actions 26-38, from [-1, 1] to [0, 1]); a joint moves towards its target as a
@@ -30,14 +31,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from unitysim.envs.arena import DT, ArenaEnv, uniform_in
+from unitysim.envs.arena import DT, ArenaEnv
 from unitysim.envs.base import Actions, Behavior, Parameters, Sensor
+from unitysim.envs.jointed import Glide, Joints, pose_map, quaternion, velocity_match
 
-HALF = (15.0, 15.0)
+HALF = 15.0
 JOINTS, PARTS = 13, 16
 MAX_STEP = 5000
 WALK_SPEED, MAX_SPEED = 3.0, 4.0
-STIFFNESS, JOINT_DAMPING = 120.0, 18.0
 PENDULUM = 2.0  # length of the inverted pendulum (m)
 BALANCE, TILT_DAMPING, FALLEN = 12.0, 1.0, 0.8
 HIP_HEIGHT = 1.1
@@ -71,7 +72,7 @@ def _chain() -> np.ndarray:
 CHAIN = _chain()
 # fixed maps from the pose to motion, the same in every run: the torso's torque (pitch,
 # roll), the stride in the body frame (forward, left) and the turn rate
-MIX = np.random.default_rng(2718).normal(size=(2 * JOINTS, 5)) / np.sqrt(JOINTS)
+MIX = pose_map(2718, 2 * JOINTS, 5, JOINTS)
 STRENGTH_OF_PART = np.array([j if j >= 0 else JOINTS for j in JOINT])  # JOINTS -> 1
 
 
@@ -82,93 +83,62 @@ class Walker(ArenaEnv):
 
     def __init__(self, rng: np.random.Generator, num_areas: int, params: Parameters) -> None:
         super().__init__(rng, num_areas, params)
-        n = self.n
-        # planar quantities are complex: x + 1j * y
-        self.pos = np.zeros(n, dtype=complex)
-        self.velocity = np.zeros(n, dtype=complex)
-        self.target = np.zeros(n, dtype=complex)
-        self.heading = np.zeros(n)
-        self.turn_rate = np.zeros(n)
-        self.tilt = np.zeros((n, 2))  # pitch (forward), roll (left)
-        self.tilt_rate = np.zeros((n, 2))
-        self.q = np.zeros((n, JOINTS, 2))
-        self.q_rate = np.zeros((n, JOINTS, 2))
-        self.aim = np.zeros((n, JOINTS, 2))  # joint targets
-        self.strength = np.ones((n, JOINTS + 1))  # last column: parts without a joint
+        self.body = Glide(self.n, HALF)
+        self.joints = Joints(self.n, JOINTS)
+        self.tilt = np.zeros((self.n, 2))  # pitch (forward), roll (left)
+        self.tilt_rate = np.zeros((self.n, 2))
         self.gravity, self.inertia = 9.81, 1.0
 
     def _begin(self, which: np.ndarray) -> None:
-        k = int(which.sum())
         self.gravity = self.params.get("gravity", 9.81)
         masses = [self.params.get(f"{p}_mass", 8.0) for p in ("hip", "chest", "spine")]
         self.inertia = max(sum(masses) / 24.0, 0.1)
-        self.pos[which] = uniform_in(self.rng, k, HALF, 2.0) @ [1.0, 1j]
-        self.heading[which] = self.rng.uniform(-np.pi, np.pi, k)
-        self.tilt[which] = self.rng.uniform(-0.05, 0.05, (k, 2))
-        for array in (self.velocity, self.turn_rate, self.tilt_rate, self.q, self.q_rate, self.aim):
-            array[which] = 0.0
-        self.strength[which] = 1.0
-        self._move_targets(which)
-
-    def _move_targets(self, which: np.ndarray) -> None:
-        spot = uniform_in(self.rng, int(which.sum()), HALF, 2.0) @ [1.0, 1j]
-        close = np.abs(spot - self.pos[which]) < 5.0
-        spot[close] = -spot[close]  # the other side of the field
-        self.target[which] = spot
+        self.body.begin(which, self.rng)
+        self.tilt[which] = self.rng.uniform(-0.05, 0.05, (int(which.sum()), 2))
+        self.tilt_rate[which] = 0.0
+        self.joints.begin(which)
+        self.body.place_targets(which, self.rng)
 
     def _act(self, rows: np.ndarray, actions: Actions) -> None:
         a = np.clip(actions.continuous, -1.0, 1.0)
-        self.aim[rows] = a[:, : 2 * JOINTS].reshape(-1, JOINTS, 2)
-        self.strength[rows, :JOINTS] = (a[:, 2 * JOINTS :] + 1.0) / 2.0
+        self.joints.drive(rows, a[:, : 2 * JOINTS].reshape(-1, JOINTS, 2), a[:, 2 * JOINTS :])
 
     def _simulate(self) -> tuple[np.ndarray, np.ndarray]:
-        spring = STIFFNESS * self.strength[:, :JOINTS, None] * (self.aim - self.q)
-        self.q_rate += (spring - JOINT_DAMPING * self.q_rate) * DT
-        self.q += self.q_rate * DT
-        effect = np.tanh(self.q.reshape(self.n, -1) @ MIX)
+        self.joints.step()
+        effect = np.tanh(self.joints.pose() @ MIX)
         fall = (self.gravity / PENDULUM) * np.sin(self.tilt)
         torque = effect[:, :2] * (BALANCE / self.inertia)
         self.tilt_rate += (fall + torque - TILT_DAMPING * self.tilt_rate) * DT
         self.tilt += self.tilt_rate * DT
-        # the pose sets a velocity in the body frame; the body follows it within ~0.2 s
-        self.turn_rate = effect[:, 4] * 2.0
-        self.heading += self.turn_rate * DT
-        facing = np.exp(1j * self.heading)
-        stride = facing * (effect[:, 2] + 1j * effect[:, 3]) * MAX_SPEED
-        self.velocity += (stride - self.velocity) * 0.1
-        self.pos += self.velocity * DT
-        bounds = self.pos.view(np.float64)
-        np.clip(bounds, -HALF[0], HALF[0], out=bounds)  # the field is square
+        body = self.body
+        body.step(effect[:, 2] + 1j * effect[:, 3], effect[:, 4], MAX_SPEED)
         # reward: velocity match times facing the target
-        to_target = self.target - self.pos
-        distance = np.abs(to_target)
-        direction = to_target / np.maximum(distance, 1e-6)
-        error = np.minimum(np.abs(self.velocity - WALK_SPEED * direction), WALK_SPEED)
-        match = (1.0 - (error / WALK_SPEED) ** 2) ** 2
-        looking = ((facing * direction.conj()).real + 1.0) / 2.0
+        distance, direction = body.to_target()
+        match = velocity_match(body.velocity, WALK_SPEED * direction, WALK_SPEED)
+        looking = ((body.facing() * direction.conj()).real + 1.0) / 2.0
         self.reward += match * looking
         reached = distance < 1.5
         if reached.any():
-            self._move_targets(reached)
+            body.place_targets(reached, self.rng)
         fell = np.maximum(np.abs(self.tilt[:, 0]), np.abs(self.tilt[:, 1])) > FALLEN
         interrupted = ~fell & (self.episode_steps >= MAX_STEP)
         return fell | interrupted, interrupted
 
     def _observe(self, behavior: int, rows: np.ndarray) -> list[np.ndarray]:
-        k = len(rows)
-        to_target = self.target[rows] - self.pos[rows]
+        k, body, joints = len(rows), self.body, self.joints
+        to_target = body.target[rows] - body.pos[rows]
         distance = np.abs(to_target)
         goal = np.angle(to_target)
         # angles of each part (k, parts): pitch and roll from the torso and its joints,
         # yaw the facing relative to the target direction
-        pitch = self.tilt[rows, 0, None] + self.q[rows, :, 0] @ CHAIN.T
-        roll = self.tilt[rows, 1, None] + self.q[rows, :, 1] @ CHAIN.T
-        yaw = np.broadcast_to((self.heading[rows] - goal)[:, None], pitch.shape)
+        pitch = self.tilt[rows, 0, None] + joints.q[rows, :, 0] @ CHAIN.T
+        roll = self.tilt[rows, 1, None] + joints.q[rows, :, 1] @ CHAIN.T
+        yaw = np.broadcast_to((body.heading[rows] - goal)[:, None], pitch.shape)
         spin = np.stack(
             [
-                self.tilt_rate[rows, 1, None] + self.q_rate[rows, :, 1] @ CHAIN.T,
-                np.broadcast_to(self.turn_rate[rows, None], pitch.shape),
-                self.tilt_rate[rows, 0, None] + self.q_rate[rows, :, 0] @ CHAIN.T,
+                self.tilt_rate[rows, 1, None] + joints.q_rate[rows, :, 1] @ CHAIN.T,
+                np.broadcast_to(body.turn_rate[rows, None], pitch.shape),
+                self.tilt_rate[rows, 0, None] + joints.q_rate[rows, :, 0] @ CHAIN.T,
             ],
             axis=2,
         )
@@ -181,18 +151,13 @@ class Walker(ArenaEnv):
         position = np.stack([x1 * cy - z2 * sy, y2, x1 * sy + z2 * cy], axis=2)
         contact = HIP_HEIGHT * np.cos(self.tilt[rows, 0, None]) + y2 < 0.1
         # velocity in the goal frame: the body's, plus the part's turning about the hips
-        relative = self.velocity[rows] * np.exp(-1j * goal)  # along, across the goal direction
+        relative = body.velocity[rows] * np.exp(-1j * goal)  # along, across the goal direction
         body = np.column_stack([relative.real, np.zeros(k), relative.imag])
         velocity = body[:, None, :] + np.cross(spin, position)
         # rotation quaternion (x, y, z, w) of yaw about up, then pitch, then roll
-        hy, hp, hr = yaw / 2.0, pitch / 2.0, roll / 2.0
-        ax, ay = np.sin(hy) * np.sin(hp), np.sin(hy) * np.cos(hp)
-        az, aw = np.cos(hy) * np.sin(hp), np.cos(hy) * np.cos(hp)
-        ch, sh = np.cos(hr), np.sin(hr)
-        rotation = np.stack(
-            [aw * sh + ax * ch, ay * ch + az * sh, az * ch - ay * sh, aw * ch - ax * sh], axis=2
-        )
-        strength = self.strength[rows][:, STRENGTH_OF_PART, None]
+        rotation = quaternion(yaw, pitch, roll)
+        with_jointless = np.column_stack([joints.strength[rows], np.ones(k)])  # column JOINTS
+        strength = with_jointless[:, STRENGTH_OF_PART, None]
         parts = np.concatenate(
             [contact[..., None], velocity / MAX_SPEED, spin, position, rotation, strength], axis=2
         )
