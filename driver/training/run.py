@@ -12,6 +12,7 @@ with the sample ledger, which balances only once the service has stopped.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -112,6 +113,7 @@ class TrainingRun:
             self.run_dir,
             options.max_learner_restarts,
         )
+        self._stack.callback(self._end_learner)  # last: after the workers stopped
         self.started = time.perf_counter()
         self.deadline = self.started + options.max_seconds if options.max_seconds else None
         self.lessons.log_lessons()
@@ -134,6 +136,12 @@ class TrainingRun:
         trace: TracebackType | None,
     ) -> None:
         self._stack.close()
+
+    def _end_learner(self) -> None:
+        """The learner ends with its run: a caller that trains again in the same Ray (a
+        Tune trial's next stretch, a notebook) keeps no idle learner holding its buffer."""
+        with contextlib.suppress(Exception):  # already dead: nothing to end
+            ray.kill(self.keeper.learner, no_restart=True)
 
     @property
     def over(self) -> bool:

@@ -5,6 +5,7 @@ checkpoint and no process left."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -25,6 +26,7 @@ from driver.options import TrainingError, TrainOptions
 from driver.training.train import train
 from learners.host import checkpoint
 from learners.host.export import export_checkpoint
+from tests.conftest import tagged_processes
 from tests.helpers import assert_run_gone, kill_run, run_marked, start_train_cli
 from tests.waiting import wait_for
 
@@ -124,6 +126,23 @@ def test_resume_continues_the_step_count(trained, ray_session):
     assert checkpoint.load(resumed.checkpoint)["step"] == steps
     with pytest.raises(TrainingError, match="no checkpoint"):
         train(TrainOptions(results_dir=options.results_dir, run_id="nothing", resume=True))
+
+
+def learners() -> list[int]:
+    """This session's learner actors' processes."""
+    found = []
+    for process in tagged_processes(include_ray=True):
+        with contextlib.suppress(psutil.Error):
+            if "ray::RayLearner" in " ".join(process.cmdline()):
+                found.append(process.pid)
+    return found
+
+
+def test_a_finished_run_ends_its_learner(trained, ray_session):
+    """After the runs above, the session's Ray holds none of their learners: a caller that
+    trains again in the same Ray (a Tune trial's next stretch, a notebook) keeps no idle
+    learner holding a replay buffer."""
+    wait_for(lambda: not learners(), "the finished runs' learners to end", seconds=60)
 
 
 def test_the_trained_policy_exports_and_runs_in_onnxruntime(trained, tmp_path):
