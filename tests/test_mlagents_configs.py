@@ -11,10 +11,12 @@ import logging
 from pathlib import Path
 
 import pytest
+import yaml
 
 from driver.options import TrainOptions
 from driver.training.train import train
 from learners.trainer_config.parse import load_config
+from tests.driver.test_record_demo import record
 from unitysim.envs import NAMES, load
 
 pytestmark = pytest.mark.integration
@@ -52,24 +54,49 @@ def test_the_configs_run_here_are_those_of_the_examples_unitysim_plays():
         "poca/PushBlockCollab",
         "poca/SoccerTwos",
         "poca/StrikersVsGoalie",
-        *(f"ppo/{n}" for n in ("3DBall", "3DBallHard", "3DBall_randomize", "Basic")),
+        *(f"ppo/{n}" for n in ("3DBall", "3DBallHard", "3DBall_randomize", "Basic", "Crawler")),
         *(f"ppo/{n}" for n in ("FoodCollector", "GridWorld", "Hallway", "Match3")),
         *(f"ppo/{n}" for n in ("PushBlock", "Pyramids", "PyramidsRND", "Sorter_curriculum")),
         *(f"ppo/{n}" for n in ("Visual3DBall", "VisualFoodCollector")),
-        *(f"ppo/{n}" for n in ("Walker", "WallJump")),
-        "ppo/WallJump_curriculum",
-        *(f"sac/{n}" for n in ("3DBall", "3DBallHard", "Basic", "FoodCollector")),
+        *(f"ppo/{n}" for n in ("Walker", "WallJump", "WallJump_curriculum", "Worm")),
+        *(f"sac/{n}" for n in ("3DBall", "3DBallHard", "Basic", "Crawler", "FoodCollector")),
         *(f"sac/{n}" for n in ("GridWorld", "Hallway", "PushBlock", "Walker", "WallJump")),
+        "sac/Worm",
     ]
-    # no stand-in yet (README's "Not yet" lists them)
-    assert named([p for p in TREE if p not in DEMOS and p not in FILES]) == [
-        *(f"ppo/{n}" for n in ("Crawler", "Worm")),
-        *(f"sac/{n}" for n in ("Crawler", "Worm")),
-    ]
+    assert not [p for p in TREE if p not in DEMOS and p not in FILES]  # every one has a stand-in
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: f"{p.parent.name}/{p.stem}")
 def test_an_mlagents_example_config_runs_unchanged(path, ray_session, tmp_path, caplog):
+    runs_unchanged(path, tmp_path, caplog)
+
+
+@pytest.mark.parametrize("name", ["Crawler"])
+def test_an_imitation_config_runs_on_a_recording_of_the_scripted_expert(
+    name, ray_session, tmp_path, caplog
+):
+    """ML-Agents' ``imitation/<name>.yaml`` with its ``demo_path`` (GAIL's and behavioral
+    cloning's) pointing at ``record-demo --heuristic``'s recording of unitysim's expert:
+    the only change."""
+    demo = tmp_path / f"Expert{name}.demo"
+    code, _, err = record(
+        tmp_path, "--env", f"unitysim:{name}", "--heuristic", "--steps", "400", "--out", str(demo)
+    )
+    assert code == 0, err
+    data = yaml.safe_load((CONFIGS / "imitation" / f"{name}.yaml").read_text())
+    settings = data["behaviors"][name]
+    assert settings["reward_signals"]["gail"]["demo_path"].endswith(demo.name)
+    settings["reward_signals"]["gail"]["demo_path"] = str(demo)
+    settings["behavioral_cloning"]["demo_path"] = str(demo)
+    path = tmp_path / "imitation" / f"{name}.yaml"
+    path.parent.mkdir()
+    path.write_text(yaml.safe_dump(data))
+    runs_unchanged(path, tmp_path, caplog)
+
+
+def runs_unchanged(path: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """``path`` trains on its example's unitysim environment for 300 steps, saying only
+    what mlagents-learn would."""
     assert load_config(path).unsupported == ()
     options = TrainOptions(
         env=f"unitysim:{environment(path)}",

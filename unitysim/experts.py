@@ -11,10 +11,13 @@ cannot. The price is memory kept per agent id (Hallway's symbol and bearings, Py
 search), which :meth:`Expert.forget` drops when an agent's episode ends, as a Unity agent
 resets its own fields in ``OnEpisodeBegin``.
 
-Each expert plays one behavior, for discrete actions only (both examples have one branch
-of 5: none, forward, back, turn right, turn left). Ray sensors are read as
+Each expert plays one behavior. Hallway's and Pyramids' (:class:`RayExpert`) choose
+among one branch of 5 actions (none, forward, back, turn right, turn left); ray sensors are
+read as
 ``unitysim.envs.perception`` lays them out (and RayPerceptionSensor does): per ray a one-hot
 tag, a "missed" flag and the hit fraction; rays ahead first, then right/left pairs.
+Crawler's (:class:`CrawlerExpert`) sets its 20 joint targets from the speed and turn its
+vector sensor reports, as a Heuristic() written for the body would.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from unitysim.envs.crawlers import CRAWLER_SPEED, LEGS, Crawler
 from unitysim.envs.hallway import RAY_LENGTH
 from unitysim.envs.pyramids import RAY
 
@@ -52,7 +56,23 @@ def toward(seen: np.ndarray) -> int | None:
 
 
 class Expert(ABC):
-    """A scripted policy for one behavior: observations in, discrete actions out.
+    """A scripted policy for one behavior: observations in, actions out."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    @abstractmethod
+    def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
+        """Actions for the agents deciding now, (n, branches) int32 for a discrete
+        behavior, (n, size) float32 for a continuous one; ``observations`` one array per
+        sensor, batched as ``DecisionSteps.obs``."""
+
+    def forget(self, agent_ids: Sequence[int]) -> None:  # noqa: B027 (most remember nothing)
+        """These agents' episodes ended: what was remembered of them goes."""
+
+
+class RayExpert(Expert):
+    """An expert that walks by one branch of moves to targets its ray sensors see.
 
     Rays are 18 degrees of turn per decision apart from where they were, and 23 to 35
     degrees apart from each other, so a target seen by a side ray is out of sight after
@@ -66,18 +86,12 @@ class Expert(ABC):
     SCAN = 22  # then turns in place (a full circle takes 20 decisions), then walks a bit
 
     def __init__(self, seed: int = 0) -> None:
-        self.rng = np.random.default_rng(seed)
+        super().__init__(seed)
         self.unseen: dict[int, int] = {}  # agent -> decisions since its target was seen
         self.side: dict[int, int] = {}  # agent -> the way it last turned toward its target
         self.turned: dict[int, int] = {}  # agent -> its last move toward a target in sight
 
-    @abstractmethod
-    def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
-        """Actions (n, 1) int32 for the agents deciding now; ``observations`` one array per
-        sensor, batched as ``DecisionSteps.obs``."""
-
     def forget(self, agent_ids: Sequence[int]) -> None:
-        """These agents' episodes ended: what was remembered of them goes."""
         for agent in (int(a) for a in agent_ids):
             for memory in self.memories():
                 memory.pop(agent, None)
@@ -112,7 +126,7 @@ class Expert(ABC):
     WALK = 6  # decisions walked between two looks around
 
 
-class HallwayExpert(Expert):
+class HallwayExpert(RayExpert):
     """Hallway: look around a full circle, noting which ways are open as far as the rays
     reach (the hallway's axis: its side walls are in reach across it) and where the
     symbol is if in sight; else walk along the hallway until a ray sees it. Its colour
@@ -223,7 +237,7 @@ class HallwayExpert(Expert):
         return FORWARD if abs(off) <= slack else (LEFT if off > 0 else RIGHT)
 
 
-class PyramidsExpert(Expert):
+class PyramidsExpert(RayExpert):
     """Pyramids: while the switch is off, go to it (seen by the rays ahead or behind);
     once on, go to the pyramid (the gold seen by the high rays, its bricks by the low
     ones). Nothing in sight: look around, then walk toward the freest ray ahead (an
@@ -260,9 +274,33 @@ class PyramidsExpert(Expert):
         return actions
 
 
+class CrawlerExpert(Expert):
+    """Crawler: turn towards the target and walk at the episode's speed. Its vector sensor
+    gives the speed to match and the turn to the target direction; the pose that makes the
+    body move that way follows from the body's fixed map (``Crawler.mix``), solved for the
+    angles the actions set, at full strength."""
+
+    TURN_GAIN = 2.0  # full turn rate beyond half a radian off the target direction
+    # the pose entries the actions set: both angles of the upper legs, the first of the lower
+    FREE = np.r_[0 : 2 * LEGS, 2 * LEGS : 4 * LEGS : 2]
+    SOLVE = np.linalg.pinv(Crawler.mix[FREE])  # (3, 12): motion -> least-norm pose
+
+    def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
+        vector = observations[1]
+        speed = vector[:, 6]
+        qy, qw = vector[:, 8], vector[:, 10]
+        turn = 2.0 * np.arctan2(qy, qw)  # clockwise, from facing to the target direction
+        stride = np.exp(-1j * turn) * speed / CRAWLER_SPEED  # forward + 1j * left
+        motion = np.column_stack([stride.real, stride.imag, -turn * self.TURN_GAIN])
+        pose = np.arctanh(np.clip(motion, -0.95, 0.95)) @ self.SOLVE
+        strengths = np.ones((len(agent_ids), 2 * LEGS))
+        return np.clip(np.concatenate([pose, strengths], axis=1), -1.0, 1.0).astype(np.float32)
+
+
 EXPERTS: dict[str, Callable[[int], Expert]] = {
     "Hallway?team=0": HallwayExpert,
     "Pyramids?team=0": PyramidsExpert,
+    "Crawler?team=0": CrawlerExpert,
 }
 
 

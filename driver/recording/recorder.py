@@ -112,15 +112,17 @@ class PolicyActor:
 
 
 class ExpertActor:
-    """A unitysim scripted expert (discrete actions only)."""
+    """A unitysim scripted expert, of a discrete or a continuous behavior."""
 
     def __init__(self, expert: Expert, spec: BehaviorSpec) -> None:
         self.expert, self.spec = expert, spec
 
     def act(self, decisions: DecisionSteps) -> ActionTuple:
-        discrete = self.expert.act(np.asarray(decisions.agent_id), decisions.obs)
-        continuous = np.zeros((len(decisions), self.spec.action_spec.continuous_size), np.float32)
-        return ActionTuple(continuous, discrete.astype(np.int32))
+        chosen = self.expert.act(np.asarray(decisions.agent_id), decisions.obs)
+        n, action = len(decisions), self.spec.action_spec
+        if action.continuous_size:
+            return ActionTuple(chosen.astype(np.float32), np.zeros((n, 0), np.int32))
+        return ActionTuple(np.zeros((n, 0), np.float32), chosen.astype(np.int32))
 
     def ended(self, agent_ids: Sequence[int]) -> None:
         self.expert.forget(agent_ids)

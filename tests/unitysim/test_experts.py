@@ -52,6 +52,38 @@ def test_pyramids_expert_presses_the_switch_and_reaches_the_gold():
     assert random_success <= 0.2 and random_return < 0.0  # measured over 60: 0.03, -0.93
 
 
+def crawl(decisions: int, expert: bool, seed: int = 0) -> tuple[float, int]:
+    """(reward per agent and decision, targets touched) of ten Crawlers."""
+    env = load("Crawler")(np.random.default_rng(seed), 1, Parameters())
+    (behavior,) = env.behaviors
+    player = expert_for(behavior.name, seed)
+    assert player is not None
+    rng = np.random.default_rng(seed)
+    output, total, touched = env.reset(), 0.0, 0
+    for _ in range(decisions):
+        infos = output[behavior.name]
+        deciding = ~infos.done
+        ids = infos.agent_id[deciding]
+        if expert:
+            actions = player.act(ids, [o[deciding] for o in infos.obs])
+            assert actions.dtype == np.float32 and actions.shape == (len(ids), 20)
+        else:
+            actions = rng.uniform(-1.0, 1.0, (len(ids), 20)).astype(np.float32)
+        targets = env.body.target.copy()
+        output = env.step({behavior.name: Actions(actions, np.zeros((len(ids), 0), np.int32))})
+        total += float(output[behavior.name].reward.sum())
+        touched += int((env.body.target != targets).sum())
+    return total / (10 * decisions), touched
+
+
+def test_crawler_expert_walks_to_the_target_at_the_episodes_speed():
+    """Each decision is 5 physics steps, each paying at most 1 for speed and facing."""
+    reward, touched = crawl(300, expert=True)
+    random_reward, _ = crawl(100, expert=False)
+    assert reward >= 3.0 and touched >= 30  # measured: 3.82 a decision
+    assert random_reward < 0.5  # measured: 0.16
+
+
 def test_ray_reading_and_steering():
     frame = np.zeros((1, 3 * 7), np.float32)  # 3 rays, 5 tags: one-hot, missed, fraction
     frame[0, 0 * 7 + 4], frame[0, 0 * 7 + 6] = 1.0, 0.5  # ahead: a wall at half length
@@ -65,7 +97,8 @@ def test_ray_reading_and_steering():
 
 def test_experts_forget_ended_episodes():
     expert = expert_for("Hallway?team=0")
-    assert expert is not None and sorted(EXPERTS) == ["Hallway?team=0", "Pyramids?team=0"]
+    assert expert is not None
+    assert sorted(EXPERTS) == ["Crawler?team=0", "Hallway?team=0", "Pyramids?team=0"]
     obs = [np.zeros((2, 105), np.float32), np.zeros((2, 3), np.float32)]
     obs[0][:, 70 + 3] = 1.0  # the newest frame's first ray sees the red block
     expert.act(np.array([7, 8]), obs)

@@ -41,6 +41,7 @@ SPEC_ENVS = [
 CONTRACT_ENVS = [
     *SPEC_ENVS,
     *("Sorter", "Match3", "Visual3DBall", "PushBlock", "PushBlockCollab", "VisualFoodCollector"),
+    *("Crawler", "Worm"),
 ]
 OBSERVATION_TYPES = {"DEFAULT": DEFAULT_OBS, "GOAL_SIGNAL": GOAL_SIGNAL}
 

@@ -22,6 +22,8 @@ _ENTRIES: dict[str, str] = {
     "StrikersVsGoalie": "unitysim.envs.strikers:StrikersVsGoalie",
     "SoccerTwos": "unitysim.envs.soccer:SoccerTwos",
     "Walker": "unitysim.envs.walker:Walker",
+    "Crawler": "unitysim.envs.crawlers:Crawler",
+    "Worm": "unitysim.envs.crawlers:Worm",
     "Hallway": "unitysim.envs.hallway:Hallway",
     "Pyramids": "unitysim.envs.pyramids:Pyramids",
     "DungeonEscape": "unitysim.envs.dungeon:DungeonEscape",
