@@ -71,7 +71,7 @@ def test_an_mlagents_example_config_runs_unchanged(path, ray_session, tmp_path, 
     runs_unchanged(path, tmp_path, caplog)
 
 
-@pytest.mark.parametrize("name", ["Crawler"])
+@pytest.mark.parametrize("name", ["Crawler", "PushBlock"])
 def test_an_imitation_config_runs_on_a_recording_of_the_scripted_expert(
     name, ray_session, tmp_path, caplog
 ):

@@ -12,12 +12,12 @@ search), which :meth:`Expert.forget` drops when an agent's episode ends, as a Un
 resets its own fields in ``OnEpisodeBegin``.
 
 Each expert plays one behavior. Hallway's and Pyramids' (:class:`RayExpert`) choose
-among one branch of 5 actions (none, forward, back, turn right, turn left); ray sensors are
-read as
-``unitysim.envs.perception`` lays them out (and RayPerceptionSensor does): per ray a one-hot
-tag, a "missed" flag and the hit fraction; rays ahead first, then right/left pairs.
-Crawler's (:class:`CrawlerExpert`) sets its 20 joint targets from the speed and turn its
-vector sensor reports, as a Heuristic() written for the body would.
+among one branch of 5 actions (none, forward, back, turn right, turn left), PushBlock's
+among 7 (strafe left and right too); ray sensors are read as ``unitysim.envs.perception``
+lays them out (and RayPerceptionSensor does): per ray a one-hot tag, a "missed" flag and
+the hit fraction; rays ahead first, then right/left pairs. Crawler's
+(:class:`CrawlerExpert`) sets its 20 joint targets from the speed and turn its vector
+sensor reports, as a Heuristic() written for the body would.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import numpy as np
 
 from unitysim.envs.crawlers import CRAWLER_SPEED, LEGS, Crawler
 from unitysim.envs.hallway import RAY_LENGTH
+from unitysim.envs.push_block import RAYS as PUSH_RAYS
 from unitysim.envs.pyramids import RAY
 
 NOOP, FORWARD, BACK, RIGHT, LEFT = range(5)
@@ -297,10 +298,91 @@ class CrawlerExpert(Expert):
         return np.clip(np.concatenate([pose, strengths], axis=1), -1.0, 1.0).astype(np.float32)
 
 
+class PushBlockExpert(Expert):
+    """PushBlock: find the goal, then push the block into it without turning again.
+
+    A full circle of turns (18 of 20 degrees) notes the turn at which the low ray ahead
+    sees the goal strip nearest, and turns back to it: the agent then faces the goal.
+    Never turning again, it keeps that bearing: a block ahead is pushed forward, a block
+    ahead to a side is strafed towards until it is ahead. A block out of sight is first
+    looked for ahead (walking towards the goal: the rays reach 12 of the court's 25); one
+    level with the agent (the 90-degree rays), or none by the goal, is behind: walk back
+    past it, sidestepping towards the middle now and then so as not to back into it, and
+    after a while look ahead again. No goal in sight over a circle: walk a little, look
+    again. An episode's end forgets it all (a real build turns the whole area)."""
+
+    BLOCK, GOAL = 0, 1
+    CIRCLE = 18  # turns of 20 degrees
+    TURN, FORWARD_, BACK, STRAFE_LEFT, STRAFE_RIGHT = LEFT, FORWARD, BACK, 5, 6
+    SIDESTEP = 12  # decisions walked back before a sidestep of as many
+    WANDER = 6  # decisions walked when the goal was not seen over a circle
+    NEAR_GOAL = 0.25  # of the rays' 12: the goal strip this near ahead
+    GIVE_UP = 4 * SIDESTEP  # decisions walked back without finding the block
+
+    def __init__(self, seed: int = 0) -> None:
+        super().__init__(seed)
+        self.turns: dict[int, int] = {}  # agent -> turns made while looking for the goal
+        self.nearest: dict[int, tuple[float, int]] = {}  # agent -> (fraction, at turn)
+        self.walked: dict[int, int] = {}  # agent -> decisions since it faced the goal
+
+    def forget(self, agent_ids: Sequence[int]) -> None:
+        for agent in (int(a) for a in agent_ids):
+            for memory in (self.turns, self.nearest, self.walked):
+                memory.pop(agent, None)
+
+    def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
+        width = PUSH_RAYS.size
+        low, low_fraction = rays(observations[1][:, -width:], PUSH_RAYS.num_tags)
+        actions = np.zeros((len(agent_ids), 1), np.int32)
+        for row, agent in enumerate(int(a) for a in agent_ids):
+            actions[row, 0] = self._act(agent, low[row], low_fraction[row])
+        return actions
+
+    def _act(self, agent: int, tags: np.ndarray, fractions: np.ndarray) -> int:
+        turns = self.turns.setdefault(agent, 0)
+        if turns < 0:  # facing the goal
+            return self._push(agent, tags, fractions)
+        if tags[0] == self.GOAL and fractions[0] < self.nearest.get(agent, (2.0, 0))[0]:
+            self.nearest[agent] = (float(fractions[0]), turns % self.CIRCLE)
+        if turns < self.CIRCLE:
+            self.turns[agent] = turns + 1
+            return self.TURN
+        if agent not in self.nearest:  # no goal in sight: walk, then look again
+            if turns < self.CIRCLE + self.WANDER:
+                self.turns[agent] = turns + 1
+                return self.FORWARD_
+            self.turns[agent] = 0
+            return self.TURN
+        if turns % self.CIRCLE != self.nearest[agent][1]:
+            self.turns[agent] = turns + 1
+            return self.TURN
+        self.turns[agent], self.walked[agent] = -1, 0
+        return self._push(agent, tags, fractions)
+
+    def _push(self, agent: int, tags: np.ndarray, fractions: np.ndarray) -> int:
+        seen = np.flatnonzero(tags == self.BLOCK)
+        ray = int(seen[0]) if len(seen) else -1
+        if ray == 0:
+            return self.FORWARD_
+        if 0 < ray < 2 * PUSH_RAYS.rays_per_direction - 1:  # ahead to a side
+            return self.STRAFE_RIGHT if ray % 2 == 1 else self.STRAFE_LEFT
+        near_goal = tags[0] == self.GOAL and fractions[0] < self.NEAR_GOAL
+        walked = self.walked[agent]
+        if ray < 0 and walked == 0 and not near_goal:
+            return self.FORWARD_  # out of reach ahead, or behind: first look ahead
+        # level with the agent, or behind it: walk back past it, sidestepping now and then
+        walked = self.walked[agent] = (walked + 1) % self.GIVE_UP  # then look ahead again
+        if (walked // self.SIDESTEP) % 2 == 1:
+            right, left = fractions[-2], fractions[-1]  # the 90-degree rays: the side walls
+            return self.STRAFE_LEFT if left >= right else self.STRAFE_RIGHT
+        return self.BACK
+
+
 EXPERTS: dict[str, Callable[[int], Expert]] = {
     "Hallway?team=0": HallwayExpert,
     "Pyramids?team=0": PyramidsExpert,
     "Crawler?team=0": CrawlerExpert,
+    "PushBlock?team=0": PushBlockExpert,
 }
 
 

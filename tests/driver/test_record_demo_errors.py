@@ -61,7 +61,8 @@ CASES = {
     ),
     "no expert for the env": (
         ["--env", "unitysim:3DBall", "--heuristic"],
-        "--heuristic: no scripted expert for 3DBall?team=0 (there are: Hallway, Pyramids, Crawler)",
+        "--heuristic: no scripted expert for 3DBall?team=0 "
+        "(there are: Hallway, Pyramids, Crawler, PushBlock)",
     ),
     "expert of a real build": (
         ["--env", "/no/such/Game.x86_64", "--heuristic"],

@@ -8,8 +8,24 @@ import numpy as np
 import pytest
 
 from unitysim.envs import load
-from unitysim.envs.base import Actions, Parameters
-from unitysim.experts import EXPERTS, LEFT, RIGHT, expert_for, rays, toward
+from unitysim.envs.base import Actions, AgentInfos, Output, Parameters, SimEnv
+from unitysim.experts import EXPERTS, LEFT, RIGHT, Expert, expert_for, rays, toward
+
+
+def decide(
+    env: SimEnv, infos: AgentInfos, player: Expert | None, rng: np.random.Generator, moves: int
+) -> Output:
+    """One step of the agents deciding in ``infos`` (one branch): the expert's moves, or
+    uniform among the first ``moves`` without one; ended episodes are forgotten first."""
+    (behavior,) = env.behaviors
+    deciding = ~infos.done
+    ids = infos.agent_id[deciding]
+    if player is not None:
+        player.forget(infos.agent_id[infos.done])
+        actions = player.act(ids, [o[deciding] for o in infos.obs])
+    else:
+        actions = rng.integers(0, moves, (len(ids), 1)).astype(np.int32)
+    return env.step({behavior.name: Actions(np.zeros((len(ids), 0), np.float32), actions)})
 
 
 def play(env_name: str, episodes: int, expert: bool, seed: int = 0) -> tuple[float, float]:
@@ -27,14 +43,7 @@ def play(env_name: str, episodes: int, expert: bool, seed: int = 0) -> tuple[flo
             returns[agent] = returns.get(agent, 0.0) + float(infos.reward[row])
             if infos.done[row]:
                 ended.append((returns.pop(agent), float(infos.reward[row]) > 0.5))
-        player.forget(infos.agent_id[infos.done])
-        deciding = ~infos.done
-        ids = infos.agent_id[deciding]
-        if expert:
-            actions = player.act(ids, [o[deciding] for o in infos.obs])
-        else:
-            actions = rng.integers(0, 5, (len(ids), 1)).astype(np.int32)
-        output = env.step({behavior.name: Actions(np.zeros((len(ids), 0), np.float32), actions)})
+        output = decide(env, infos, player if expert else None, rng, moves=5)
     returns_, solved = zip(*ended[:episodes], strict=True)
     return float(np.mean(solved)), float(np.mean(returns_))
 
@@ -84,6 +93,35 @@ def test_crawler_expert_walks_to_the_target_at_the_episodes_speed():
     assert random_reward < 0.5  # measured: 0.16
 
 
+def first_episodes(expert: bool, seed: int = 0, decisions: int = 1000) -> tuple[float, float]:
+    """PushBlock's 32 agents: (share whose first episode scores within ``decisions``, mean
+    decisions those took)."""
+    env = load("PushBlock")(np.random.default_rng(seed), 1, Parameters())
+    (behavior,) = env.behaviors
+    player = expert_for(behavior.name, seed)
+    assert player is not None
+    rng = np.random.default_rng(seed)
+    output, first = env.reset(), {}
+    for decision in range(decisions):
+        infos = output[behavior.name]
+        for row, agent in enumerate(infos.agent_id.tolist()):
+            if infos.done[row] and agent not in first:
+                first[agent] = (float(infos.reward[row]) > 0.5, decision)
+        if len(first) == 32:
+            break
+        output = decide(env, infos, player if expert else None, rng, moves=7)
+    took = [at for scored, at in first.values() if scored]
+    return len(took) / 32, float(np.mean(took))
+
+
+def test_pushblock_expert_faces_the_goal_and_pushes_the_block_in():
+    """First episodes, 1,000 decisions (PushBlock's MaxStep) each at most."""
+    share, took = first_episodes(expert=True)
+    random_share, random_took = first_episodes(expert=False)
+    assert share >= 0.8 and took <= 160  # measured (seeds 0-2): 0.75-0.94, 108-127
+    assert random_share <= 0.6 and random_took >= 250  # measured: 0.31-0.50, 297-491
+
+
 def test_ray_reading_and_steering():
     frame = np.zeros((1, 3 * 7), np.float32)  # 3 rays, 5 tags: one-hot, missed, fraction
     frame[0, 0 * 7 + 4], frame[0, 0 * 7 + 6] = 1.0, 0.5  # ahead: a wall at half length
@@ -98,7 +136,12 @@ def test_ray_reading_and_steering():
 def test_experts_forget_ended_episodes():
     expert = expert_for("Hallway?team=0")
     assert expert is not None
-    assert sorted(EXPERTS) == ["Crawler?team=0", "Hallway?team=0", "Pyramids?team=0"]
+    assert sorted(EXPERTS) == [
+        "Crawler?team=0",
+        "Hallway?team=0",
+        "PushBlock?team=0",
+        "Pyramids?team=0",
+    ]
     obs = [np.zeros((2, 105), np.float32), np.zeros((2, 3), np.float32)]
     obs[0][:, 70 + 3] = 1.0  # the newest frame's first ray sees the red block
     expert.act(np.array([7, 8]), obs)
