@@ -161,32 +161,15 @@ class Crawler(Crawling):
         # the 9 bodies (body, then upper and lower part of each leg) on the field
         bearing = LEG_BEARING + 0.5 * upper[..., 1]  # (k, legs)
         spoke = np.exp(1j * (body.heading[rows, None] + bearing))
-        offset = np.concatenate(
-            [np.zeros((k, 1)), np.stack([UPPER * spoke, LOWER * spoke], axis=2).reshape(k, -1)],
-            axis=1,
-        )  # (k, 9) complex
-        rise = np.concatenate(
-            [
-                np.zeros((k, 1)),
-                np.stack([-0.2 * np.sin(upper[..., 0]), -0.5 * np.sin(reach)], 2).reshape(k, -1),
-            ],
-            axis=1,
-        )
+        offset = bodies(0j, UPPER * spoke, LOWER * spoke)
+        rise = bodies(0.0, -0.2 * np.sin(upper[..., 0]), -0.5 * np.sin(reach))
         position = in_cube(offset, goal[:, None], rise)
-        yaw = np.concatenate([np.zeros((k, 1)), -np.repeat(bearing, 2, axis=1)], axis=1)
-        pitch = np.concatenate(
-            [np.zeros((k, 1)), np.stack([upper[..., 0], reach], 2).reshape(k, -1)], axis=1
-        )
+        yaw, pitch = bodies(0.0, -bearing, -bearing), bodies(0.0, upper[..., 0], reach)
         rotation = quaternion(yaw - turn[:, None], pitch, np.zeros_like(pitch))  # Unity's yaw
         spin = body.turn_rate[rows, None]
         velocity = in_cube(body.velocity[rows, None] + 1j * spin * offset, goal[:, None])
-        local_yaw = np.concatenate(
-            [-body.heading[rows, None], np.stack([-upper[..., 1], 0 * lower], 2).reshape(k, -1)],
-            axis=1,
-        )
-        local_pitch = np.concatenate(
-            [np.zeros((k, 1)), np.stack([upper[..., 0], lower], 2).reshape(k, -1)], axis=1
-        )
+        local_yaw = bodies(-body.heading[rows, None], -upper[..., 1], np.zeros_like(lower))
+        local_pitch = bodies(0.0, upper[..., 0], lower)
         local = quaternion(local_yaw, local_pitch, np.zeros_like(local_pitch))
         physics = np.concatenate(
             [
@@ -200,10 +183,9 @@ class Crawler(Crawling):
         speed = self.speed[rows]
         moving = body.velocity[rows]
         goal_velocity = speed * np.exp(1j * goal)
-        touching = np.stack([upper[..., 0] > 0.9, reach > -0.5], axis=2).reshape(k, -1)
-        strength = joints.strength[rows]
-        paired = np.stack([strength[:, :LEGS], strength[:, LEGS:]], axis=2).reshape(k, -1)
-        legs = np.stack([touching, paired], axis=2)  # per part: contact, strength
+        touching = bodies(0.0, upper[..., 0] > 0.9, reach > -0.5)[:, 1:]
+        strength = bodies(0.0, joints.strength[rows, :LEGS], joints.strength[rows, LEGS:])[:, 1:]
+        legs = np.stack([touching, strength], axis=2)  # per leg part: contact, strength
         vector = np.concatenate(
             [
                 np.abs(goal_velocity - moving)[:, None],
@@ -218,6 +200,15 @@ class Crawler(Crawling):
             axis=1,
         )
         return [physics, vector]
+
+
+def bodies(first: complex | np.ndarray, upper: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """(k, 9): a value for each of the Crawler's bodies, the body's (``first``), then each
+    leg's upper and lower part's (``upper``, ``lower`` (k, legs))."""
+    k = len(upper)
+    legs = np.stack([upper, lower], axis=2).reshape(k, -1)
+    head = np.broadcast_to(np.asarray(first, dtype=legs.dtype), (k, 1))
+    return np.concatenate([head, legs], axis=1)
 
 
 # --- Worm ------------------------------------------------------------------------------
