@@ -27,12 +27,13 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from unitysim.envs import push_block
 from unitysim.envs.crawlers import CRAWLER_SPEED, LEGS, Crawler
 from unitysim.envs.hallway import RAY_LENGTH
-from unitysim.envs.push_block import RAYS as PUSH_RAYS
 from unitysim.envs.pyramids import RAY
 
-NOOP, FORWARD, BACK, RIGHT, LEFT = range(5)
+# one branch of moves (arena.MOVES): none, forward, back, turn right, turn left, strafe left, right
+NOOP, FORWARD, BACK, RIGHT, LEFT, STRAFE_LEFT, STRAFE_RIGHT = range(7)
 
 
 def rays(observation: np.ndarray, num_tags: int) -> tuple[np.ndarray, np.ndarray]:
@@ -311,9 +312,7 @@ class PushBlockExpert(Expert):
     after a while look ahead again. No goal in sight over a circle: walk a little, look
     again. An episode's end forgets it all (a real build turns the whole area)."""
 
-    BLOCK, GOAL = 0, 1
     CIRCLE = 18  # turns of 20 degrees
-    TURN, FORWARD_, BACK, STRAFE_LEFT, STRAFE_RIGHT = LEFT, FORWARD, BACK, 5, 6
     SIDESTEP = 12  # decisions walked back before a sidestep of as many
     WANDER = 6  # decisions walked when the goal was not seen over a circle
     NEAR_GOAL = 0.25  # of the rays' 12: the goal strip this near ahead
@@ -323,7 +322,7 @@ class PushBlockExpert(Expert):
         super().__init__(seed)
         self.turns: dict[int, int] = {}  # agent -> turns made while looking for the goal
         self.nearest: dict[int, tuple[float, int]] = {}  # agent -> (fraction, at turn)
-        self.walked: dict[int, int] = {}  # agent -> decisions since it faced the goal
+        self.walked: dict[int, int] = {}  # agents facing the goal -> decisions walked back
 
     def forget(self, agent_ids: Sequence[int]) -> None:
         for agent in (int(a) for a in agent_ids):
@@ -331,51 +330,51 @@ class PushBlockExpert(Expert):
                 memory.pop(agent, None)
 
     def act(self, agent_ids: np.ndarray, observations: Sequence[np.ndarray]) -> np.ndarray:
-        width = PUSH_RAYS.size
-        low, low_fraction = rays(observations[1][:, -width:], PUSH_RAYS.num_tags)
+        width = push_block.RAYS.size
+        low, low_fraction = rays(observations[1][:, -width:], push_block.RAYS.num_tags)
         actions = np.zeros((len(agent_ids), 1), np.int32)
         for row, agent in enumerate(int(a) for a in agent_ids):
             actions[row, 0] = self._act(agent, low[row], low_fraction[row])
         return actions
 
     def _act(self, agent: int, tags: np.ndarray, fractions: np.ndarray) -> int:
-        turns = self.turns.setdefault(agent, 0)
-        if turns < 0:  # facing the goal
+        if agent in self.walked:  # facing the goal
             return self._push(agent, tags, fractions)
-        if tags[0] == self.GOAL and fractions[0] < self.nearest.get(agent, (2.0, 0))[0]:
+        turns = self.turns.setdefault(agent, 0)
+        if tags[0] == push_block.GOAL and fractions[0] < self.nearest.get(agent, (2.0, 0))[0]:
             self.nearest[agent] = (float(fractions[0]), turns % self.CIRCLE)
         if turns < self.CIRCLE:
             self.turns[agent] = turns + 1
-            return self.TURN
+            return LEFT
         if agent not in self.nearest:  # no goal in sight: walk, then look again
             if turns < self.CIRCLE + self.WANDER:
                 self.turns[agent] = turns + 1
-                return self.FORWARD_
+                return FORWARD
             self.turns[agent] = 0
-            return self.TURN
+            return LEFT
         if turns % self.CIRCLE != self.nearest[agent][1]:
             self.turns[agent] = turns + 1
-            return self.TURN
-        self.turns[agent], self.walked[agent] = -1, 0
+            return LEFT
+        self.walked[agent] = 0
         return self._push(agent, tags, fractions)
 
     def _push(self, agent: int, tags: np.ndarray, fractions: np.ndarray) -> int:
-        seen = np.flatnonzero(tags == self.BLOCK)
+        seen = np.flatnonzero(tags == push_block.BLOCK)
         ray = int(seen[0]) if len(seen) else -1
         if ray == 0:
-            return self.FORWARD_
-        if 0 < ray < 2 * PUSH_RAYS.rays_per_direction - 1:  # ahead to a side
-            return self.STRAFE_RIGHT if ray % 2 == 1 else self.STRAFE_LEFT
-        near_goal = tags[0] == self.GOAL and fractions[0] < self.NEAR_GOAL
+            return FORWARD
+        if 0 < ray < 2 * push_block.RAYS.rays_per_direction - 1:  # ahead to a side
+            return STRAFE_RIGHT if ray % 2 == 1 else STRAFE_LEFT
+        near_goal = tags[0] == push_block.GOAL and fractions[0] < self.NEAR_GOAL
         walked = self.walked[agent]
         if ray < 0 and walked == 0 and not near_goal:
-            return self.FORWARD_  # out of reach ahead, or behind: first look ahead
+            return FORWARD  # out of reach ahead, or behind: first look ahead
         # level with the agent, or behind it: walk back past it, sidestepping now and then
         walked = self.walked[agent] = (walked + 1) % self.GIVE_UP  # then look ahead again
         if (walked // self.SIDESTEP) % 2 == 1:
             right, left = fractions[-2], fractions[-1]  # the 90-degree rays: the side walls
-            return self.STRAFE_LEFT if left >= right else self.STRAFE_RIGHT
-        return self.BACK
+            return STRAFE_LEFT if left >= right else STRAFE_RIGHT
+        return BACK
 
 
 EXPERTS: dict[str, Callable[[int], Expert]] = {

@@ -183,8 +183,8 @@ class Crawler(Crawling):
         speed = self.speed[rows]
         moving = body.velocity[rows]
         goal_velocity = speed * np.exp(1j * goal)
-        touching = bodies(0.0, upper[..., 0] > 0.9, reach > -0.5)[:, 1:]
-        strength = bodies(0.0, joints.strength[rows, :LEGS], joints.strength[rows, LEGS:])[:, 1:]
+        touching = leg_parts(upper[..., 0] > 0.9, reach > -0.5)
+        strength = leg_parts(joints.strength[rows, :LEGS], joints.strength[rows, LEGS:])
         legs = np.stack([touching, strength], axis=2)  # per leg part: contact, strength
         vector = np.concatenate(
             [
@@ -202,16 +202,29 @@ class Crawler(Crawling):
         return [physics, vector]
 
 
+def leg_parts(upper: np.ndarray, lower: np.ndarray) -> np.ndarray:
+    """(k, 8): each leg's upper part's value, then its lower part's (``upper``, ``lower``
+    (k, legs))."""
+    return np.stack([upper, lower], axis=2).reshape(len(upper), -1)
+
+
 def bodies(first: complex | np.ndarray, upper: np.ndarray, lower: np.ndarray) -> np.ndarray:
-    """(k, 9): a value for each of the Crawler's bodies, the body's (``first``), then each
-    leg's upper and lower part's (``upper``, ``lower`` (k, legs))."""
-    k = len(upper)
-    legs = np.stack([upper, lower], axis=2).reshape(k, -1)
-    head = np.broadcast_to(np.asarray(first, dtype=legs.dtype), (k, 1))
+    """(k, 9): a value for each of the Crawler's bodies, the body's (``first``), then
+    :func:`leg_parts`."""
+    legs = leg_parts(upper, lower)
+    head = np.broadcast_to(np.asarray(first, dtype=legs.dtype), (len(legs), 1))
     return np.concatenate([head, legs], axis=1)
 
 
 # --- Worm ------------------------------------------------------------------------------
+
+
+def from_head(per_joint: np.ndarray) -> np.ndarray:
+    """(k, segments): the sum of ``per_joint`` (k, joints) over the joints between the
+    head and each segment (0 for the head)."""
+    summed = np.cumsum(per_joint, axis=1)
+    return np.concatenate([np.zeros((len(summed), 1), summed.dtype), summed], axis=1)
+
 
 SEGMENTS = 4
 WORM_SPEED = 10.0  # m_MaxWalkingSpeed
@@ -241,16 +254,12 @@ class Worm(Crawling):
         goal, distance, turn = self._cube(rows)
         q, q_rate = joints.q[rows], joints.q_rate[rows]
         # each segment's heading and pitch: the head's, then bent by each joint in turn
-        zero = np.zeros((k, 1))
-        bend = np.concatenate([zero, np.cumsum(q[..., 1], axis=1)], axis=1)
-        heading = body.heading[rows, None] + bend  # (k, segments)
-        pitch = np.concatenate([zero, np.cumsum(q[..., 0], axis=1)], axis=1)
-        bend_rate = np.concatenate([zero, np.cumsum(q_rate[..., 1], axis=1)], axis=1)
-        pitch_rate = np.concatenate([zero, np.cumsum(q_rate[..., 0], axis=1)], axis=1)
+        heading = body.heading[rows, None] + from_head(q[..., 1])  # (k, segments)
+        pitch = from_head(q[..., 0])
+        bend_rate, pitch_rate = from_head(q_rate[..., 1]), from_head(q_rate[..., 0])
         # centres trail the head, each a segment's length behind the one before
-        back = np.exp(1j * heading[:, 1:]) * SEGMENT * np.cos(pitch[:, 1:])
-        offset = np.concatenate([zero.astype(complex), -np.cumsum(back, axis=1)], axis=1)
-        rise = np.concatenate([zero, np.cumsum(SEGMENT * np.sin(pitch[:, 1:]), axis=1)], 1)
+        offset = -from_head(np.exp(1j * heading[:, 1:]) * SEGMENT * np.cos(pitch[:, 1:]))
+        rise = from_head(SEGMENT * np.sin(pitch[:, 1:]))
         spin = body.turn_rate[rows, None] + bend_rate
         velocity = in_cube(body.velocity[rows, None] + 1j * spin * offset, goal[:, None])
         angular = np.stack([pitch_rate, -spin, np.zeros_like(spin)], axis=2)
