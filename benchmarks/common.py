@@ -21,7 +21,23 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
-MLAGENTS_CONFIGS = ROOT / "benchmarks" / "mlagents_configs"  # ML-Agents' own configs
+# ML-Agents' own example configs: the release's whole tree, ``<trainer>/<Name>.yaml``, the
+# files the suite runs unchanged (tests/mlagents_configs/README.md); and the variants made
+# here, each one of them less one section, to show what that feature does
+MLAGENTS_CONFIGS = ROOT / "tests" / "mlagents_configs"
+CONFIG_VARIANTS = ROOT / "benchmarks" / "config_variants"
+
+
+def mlagents_config(name: str) -> Path:
+    """ML-Agents' config ``name`` (``ppo/Pyramids.yaml``), or a variant made here
+    (``ppo/Pyramids_nocuriosity.yaml``)."""
+    for tree in (MLAGENTS_CONFIGS, CONFIG_VARIANTS):
+        if (tree / name).is_file():
+            return tree / name
+    raise SystemExit(
+        f"no config {name!r} in {MLAGENTS_CONFIGS.relative_to(ROOT)}/ or "
+        f"{CONFIG_VARIANTS.relative_to(ROOT)}/: name one as <trainer>/<Name>.yaml"
+    )
 
 
 def machine() -> dict[str, Any]:

@@ -37,10 +37,10 @@ from pathlib import Path
 
 import psutil
 
-from benchmarks.common import MLAGENTS_CONFIGS, RESULTS, ROOT, machine
+from benchmarks.common import RESULTS, ROOT, machine, mlagents_config
 from testkit.chaos import ChaosDriver, Fault, issue_schedule  # not installed: run from the root
 
-CONFIG = MLAGENTS_CONFIGS / "ppo_3DBall.yaml"
+CONFIG = mlagents_config("ppo/3DBall.yaml")
 REWARD = re.compile(r"Step: (\d+)\. .*Mean Reward: ([\d.]+)\.")
 MARK = "UNITY_ROLLOUT_BENCH_RUN"
 

@@ -68,10 +68,9 @@ def freeze_acting_normalizer() -> None:
 
 
 def main() -> int:
-    from benchmarks.common import machine  # our venv from here on
+    from benchmarks.common import machine, mlagents_config  # our venv from here on
     from benchmarks.learning.trainer_runs import (
         ANCHOR_DIR,
-        CONFIGS,
         Run,
         anchor_command,
         build_player,
@@ -100,7 +99,7 @@ def main() -> int:
         for side in order:
             run_id = f"{side.replace(' ', '-')}-{seed}"
             command = anchor_command(
-                sides[side], CONFIGS / "ppo_3DBall.yaml", build, run_id, work / "mlagents",
+                sides[side], mlagents_config("ppo/3DBall.yaml"), build, run_id, work / "mlagents",
                 31000 + 10 * seed, seed,
             )  # fmt: skip
             run = Run(side, seed)

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import MLAGENTS_CONFIGS
+from benchmarks.common import mlagents_config
 from benchmarks.equality.common import (
     BRANCH,
     OBS_SIZE,
@@ -77,7 +77,7 @@ def encoder(ours: str, module: str, body: str, layers: int) -> dict[str, tuple[s
 
 CASES = {
     "curiosity": Case(
-        "ppo_Pyramids.yaml",
+        "ppo/Pyramids.yaml",
         {
             **encoder("body", "curiosity", "_state_encoder._body_endoder", 2),
             "sig:inverse.0": ("curiosity", "inverse_model_action_encoding.0.seq_layers.0"),
@@ -92,7 +92,7 @@ CASES = {
         (*REPORTED, "Losses/Curiosity Forward Loss", "Losses/Curiosity Inverse Loss"),
     ),
     "rnd": Case(
-        "ppo_PyramidsRND.yaml",
+        "ppo/PyramidsRND.yaml",
         {
             **encoder("target", "rnd_random", "_encoder._body_endoder", 3),
             **encoder("predictor", "rnd_trained", "_encoder._body_endoder", 3),
@@ -140,7 +140,7 @@ def ours_updates(seed: int, case: Case) -> dict[str, Any]:
     from learners.networks.policies import ActorCritic
     from learners.trainer_config.parse import load_config
 
-    settings = load_config(MLAGENTS_CONFIGS / case.config).for_behavior(BEHAVIOR)
+    settings = load_config(mlagents_config(case.config)).for_behavior(BEHAVIOR)
     horizon = settings.time_horizon
     spec = vector_spec(OBS_SIZE, BRANCH)
     torch.manual_seed(seed)
@@ -190,7 +190,7 @@ def mlagents(case_file: Path, anchor: Path) -> float:
     for name, case in CASES.items():
         print(f"  {name}:")
         d = {k.split("|", 1)[1]: saved[k] for k in saved.files if k.startswith(f"{name}|")}
-        policy, optimizer, settings = mlagents_ppo(MLAGENTS_CONFIGS / case.config, BEHAVIOR)
+        policy, optimizer, settings = mlagents_ppo(mlagents_config(case.config), BEHAVIOR)
         provider = optimizer.reward_signals[name]
         modules = {"actor": policy.actor, "critic": optimizer.critic}
         modules |= {module: getattr(provider, attr) for module, attr in case.modules.items()}

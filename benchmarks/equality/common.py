@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import MLAGENTS_CONFIGS, ROOT
+from benchmarks.common import ROOT, mlagents_config
 
-CONFIG = MLAGENTS_CONFIGS / "ppo_Basic.yaml"
+CONFIG = mlagents_config("ppo/Basic.yaml")
 BEHAVIOR, OBS_SIZE, BRANCH = "Basic", 20, 3  # Basic's spec: a one-hot position, 3 moves
 ROWS = 90
 TOLERANCE = 1e-3  # of how far the update moved each parameter; of each reported loss

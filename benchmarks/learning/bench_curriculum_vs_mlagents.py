@@ -24,9 +24,9 @@ from pathlib import Path
 
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from benchmarks.common import machine
+from benchmarks.common import machine, mlagents_config
 from benchmarks.learning.bench_vs_mlagents import OURS_MLAGENTS, Case, anchor_run, our_run
-from benchmarks.learning.trainer_runs import CONFIGS, build_player
+from benchmarks.learning.trainer_runs import build_player
 
 
 def series(folder: Path) -> dict[str, list[tuple[int, float]]]:
@@ -76,7 +76,7 @@ def read_run(root: Path) -> dict[str, dict]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument(
-        "--config", default="ppo_WallJump_curriculum.yaml", help="in mlagents_configs/"
+        "--config", default="ppo/WallJump_curriculum.yaml", help="<trainer>/<Name>.yaml"
     )
     parser.add_argument("--env", default="WallJump")
     parser.add_argument("--seconds", type=float, default=3600, help="wall time of both runs")
@@ -92,7 +92,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     case = Case(f"{args.env}-curriculum", args.env, args.config, None, (), args.seconds)
     build = build_player(args.env, work)
-    config = CONFIGS / args.config
+    config = mlagents_config(args.config)
     threads = [  # each run writes its own TensorBoard folders, read below
         threading.Thread(
             target=anchor_run, args=(case, args.seed, build, config, args.anchor, work, 31500)

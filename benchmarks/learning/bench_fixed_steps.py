@@ -12,7 +12,7 @@ above each of ``--levels``, and the mean number of steps an update trained on, p
 stretch between marks (mlagents-learn's from the steps at which each update began, as
 ``mlagents_update_log.py`` writes them down; ours' from ``Policy/Samples``).
 
-    .venv/bin/python -m benchmarks.learning.bench_fixed_steps --config ppo_Pyramids.yaml \\
+    .venv/bin/python -m benchmarks.learning.bench_fixed_steps --config ppo/Pyramids.yaml \\
         --env Pyramids --seeds 10 11 12 --steps 540000 [--base-tree /tmp/base] [--json F]
 
 ``--measure group`` reads POCA's mean group reward (DungeonEscape), ``elo`` self-play's ELO
@@ -20,7 +20,7 @@ stretch between marks (mlagents-learn's from the steps at which each update bega
 Striker`` gives mlagents-learn's first turn to the team ours gives it to, which its hash
 seed otherwise picks). ``--ours-option
 --mixed-precision`` (repeatable) adds an option to ours' command line.
-An imitation config (``imitation_Pyramids.yaml``) takes ``--demo-steps 5000``: both
+An imitation config (``imitation/Pyramids.yaml``) takes ``--demo-steps 5000``: both
 trainers then read one recording of unitysim's scripted expert as its ``demo_path``.
 """
 
@@ -193,7 +193,7 @@ def medians(runs: list[dict[str, Any]], args: argparse.Namespace) -> dict[str, A
 def main() -> int:
     stop_runs_on_sigterm()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default="ppo_Pyramids.yaml", help="in mlagents_configs/")
+    parser.add_argument("--config", default="ppo/Pyramids.yaml", help="<trainer>/<Name>.yaml")
     parser.add_argument("--env", default="Pyramids", help="the unitysim environment")
     parser.add_argument("--seeds", type=int, nargs="+", default=[10, 11])
     parser.add_argument("--steps", type=int, default=540_000)
@@ -207,7 +207,7 @@ def main() -> int:
         "--demo-steps", type=int, default=0, help="steps of unitysim's expert for demo_path"
     )
     parser.add_argument("--base-tree", type=Path, help="another commit's checkout, run too")
-    parser.add_argument("--also-config", help="a second config in mlagents_configs/, ours only")
+    parser.add_argument("--also-config", help="a second config (a variant), ours only")
     parser.add_argument("--behavior", help="read this behavior's summaries only (None: any)")
     parser.add_argument(
         "--ours-option", action="append", default=[], help="one more option of ours' train"

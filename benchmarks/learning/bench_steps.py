@@ -8,7 +8,7 @@ at a time), and summaries follow the config's ``summary_freq`` with mlagents-lea
 comparison with mlagents-learn is ``bench_vs_mlagents.py``'s.
 
     .venv/bin/python -m benchmarks.learning.bench_steps \\
-        benchmarks/mlagents_configs/ppo_3DBall.yaml --env unitysim:3DBall --target 90 \\
+        tests/mlagents_configs/ppo/3DBall.yaml --env unitysim:3DBall --target 90 \\
         --seeds 0 1 2
 """
 

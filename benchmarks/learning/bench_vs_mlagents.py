@@ -1,7 +1,7 @@
 """mlagents-learn against ``unity-rollout train``, side by side: same unitysim build, same
 ML-Agents YAML, 2 Unity instances each, the runs of a round interleaved, several seeds.
 
-Each case names ML-Agents' own config (``benchmarks/mlagents_configs/``) and our shipped
+Each case names ML-Agents' own config (``tests/mlagents_configs/``) and our shipped
 one (``config/``). A round runs, one after the other on the same build: mlagents-learn with
 ML-Agents' config, ``unity-rollout train`` with the same file, and ``unity-rollout train``
 with the shipped config. Every run is stopped once its summaries reached every target
@@ -58,7 +58,7 @@ ANCHOR, OURS_MLAGENTS, OURS_SHIPPED = (
 class Case:
     name: str
     env: str  # unitysim environment, built as a player for both trainers
-    mlagents_config: str  # in benchmarks/mlagents_configs/
+    mlagents_config: str  # benchmarks.common.mlagents_config's name
     shipped_config: str | None  # in config/; None: no shipped config for this example
     targets: tuple[float, ...]  # reward levels, ascending; () : mlagents-learn's end level
     cap_s: float  # a run not there by then is stopped and reported as not reaching it
@@ -71,50 +71,50 @@ class Case:
 
 
 CASES = (
-    Case("3DBall-PPO", "3DBall", "ppo_3DBall.yaml", "3DBall.yaml", (90.0,), 600),
-    Case("3DBall-SAC", "3DBall", "sac_3DBall.yaml", "3DBall_sac.yaml", (90.0,), 900),
-    Case("Basic-PPO", "Basic", "ppo_Basic.yaml", "Basic.yaml", (0.9,), 300),
+    Case("3DBall-PPO", "3DBall", "ppo/3DBall.yaml", "3DBall.yaml", (90.0,), 600),
+    Case("3DBall-SAC", "3DBall", "sac/3DBall.yaml", "3DBall_sac.yaml", (90.0,), 900),
+    Case("Basic-PPO", "Basic", "ppo/Basic.yaml", "Basic.yaml", (0.9,), 300),
     Case(
-        "GridWorld-PPO", "GridWorld", "ppo_GridWorld.yaml", "GridWorld.yaml", (0.0, 0.3, 0.8), 600
+        "GridWorld-PPO", "GridWorld", "ppo/GridWorld.yaml", "GridWorld.yaml", (0.0, 0.3, 0.8), 600
     ),
     # environment parameters: the ball's mass and scale resampled (ML-Agents' samplers)
-    Case("3DBall_randomize-PPO", "3DBall", "ppo_3DBall_randomize.yaml", None, (50.0, 90.0), 900),
+    Case("3DBall_randomize-PPO", "3DBall", "ppo/3DBall_randomize.yaml", None, (50.0, 90.0), 900),
     # a group reward for escaping, a knight sacrificed on the way: POCA
     Case(
         "DungeonEscape-POCA",
         "DungeonEscape",
-        "poca_DungeonEscape.yaml",
+        "poca/DungeonEscape.yaml",
         "DungeonEscape.yaml",
         (0.1, 0.5),
         3600,
         measure="group",
     ),
     # a sparse reward, ML-Agents' intrinsic signals: curiosity, RND (to mlagents-learn's end)
-    Case("Pyramids-PPO-curiosity", "Pyramids", "ppo_Pyramids.yaml", None, (), 900),
-    Case("PyramidsRND-PPO", "Pyramids", "ppo_PyramidsRND.yaml", None, (), 900),
+    Case("Pyramids-PPO-curiosity", "Pyramids", "ppo/Pyramids.yaml", None, (), 900),
+    Case("PyramidsRND-PPO", "Pyramids", "ppo/PyramidsRND.yaml", None, (), 900),
     # the curiosity config without its curiosity section, to show what curiosity does
-    Case("Pyramids-PPO-no-curiosity", "Pyramids", "ppo_Pyramids_nocuriosity.yaml", None, (), 900),
+    Case("Pyramids-PPO-no-curiosity", "Pyramids", "ppo/Pyramids_nocuriosity.yaml", None, (), 900),
     # memory (an LSTM) on a Hallway whose symbol is out of sight from the goals; and the
     # same config without memory, to show what it does
-    Case("Hallway-PPO-memory", "Hallway", "ppo_Hallway.yaml", None, (), 1800, held=3),
-    Case("Hallway-PPO-no-memory", "Hallway", "ppo_Hallway_nomemory.yaml", None, (), 1800, held=3),
+    Case("Hallway-PPO-memory", "Hallway", "ppo/Hallway.yaml", None, (), 1800, held=3),
+    Case("Hallway-PPO-no-memory", "Hallway", "ppo/Hallway_nomemory.yaml", None, (), 1800, held=3),
     # a sparse reward behind a wall: whether and when the policy first finds the goal
     # varies from seed to seed in both trainers (SmallWallJump: no wall or a small one)
     Case(
         "SmallWallJump-PPO",
         "WallJump",
-        "ppo_WallJump.yaml",
+        "ppo/WallJump.yaml",
         None,
         (0.5,),
         480,
         behavior="SmallWallJump",
     ),
     # self-play, ML-Agents' configs: ELO, to the level mlagents-learn ends its run at
-    Case("SoccerTwos-POCA", "SoccerTwos", "poca_SoccerTwos.yaml", None, (), 900, "elo"),
+    Case("SoccerTwos-POCA", "SoccerTwos", "poca/SoccerTwos.yaml", None, (), 900, "elo"),
     Case(
         "StrikersVsGoalie-POCA",
         "StrikersVsGoalie",
-        "poca_StrikersVsGoalie.yaml",
+        "poca/StrikersVsGoalie.yaml",
         None,
         (),
         900,
@@ -124,12 +124,12 @@ CASES = (
     # ML-Agents' imitation configs (GAIL, behavioral cloning), on a recording of
     # unitysim's expert made by our recorder, the same file for both trainers
     Case(
-        "Pyramids-imitation", "Pyramids", "imitation_Pyramids.yaml", None, (), 900, demo_steps=5000
+        "Pyramids-imitation", "Pyramids", "imitation/Pyramids.yaml", None, (), 900, demo_steps=5000
     ),
     Case(
         "Hallway-imitation",
         "Hallway",
-        "imitation_Hallway.yaml",
+        "imitation/Hallway.yaml",
         None,
         (),
         900,

@@ -1,7 +1,7 @@
 """What the learning benchmarks share: a trainer's command run to a level (its summary
 lines, mlagents-learn's format, which ``unity-rollout train`` prints too, read live; the
 run stopped at the level or a cap; every process it started found by an environment tag
-and ended), the unitysim build both trainers run, ML-Agents' configs (``CONFIGS``, with a
+and ended), the unitysim build both trainers run, ML-Agents' configs (with a
 recording of unitysim's expert as their ``demo_path``), and a run's TensorBoard scalars."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from pathlib import Path
 import psutil
 import yaml
 
-from benchmarks.common import MLAGENTS_CONFIGS, ROOT
+from benchmarks.common import ROOT, mlagents_config
 
 SUMMARY = re.compile(
     r"(\S+)\. Step: (\d+)\. Time Elapsed: [\d.]+ s\. Mean Reward: (-?\d+(?:\.\d+)?)"
@@ -33,7 +33,6 @@ MARK = re.compile(r"\[mlbench-mark\] reset_env_done ([\d.]+)")
 TAG = "UNITY_ROLLOUT_BENCH_RUN"
 # the anchor recipe's work directory (its venv/, shim/ and mlagents_learn_launcher.py)
 ANCHOR_DIR = Path(os.environ.get("MLAGENTS_ANCHOR", "/tmp/mlbench"))
-CONFIGS = MLAGENTS_CONFIGS  # ML-Agents' own configs, as a user brings them
 
 
 @dataclass
@@ -262,7 +261,7 @@ def build_player(env: str, work: Path) -> Path:
 def with_demo(name: str, env: str, demo_steps: int, work: Path) -> Path:
     """ML-Agents' config ``name``; with ``demo_steps``, a copy in ``work`` whose every
     ``demo_path`` names a recording of unitysim's expert on ``env`` (made once)."""
-    config = CONFIGS / name
+    config = mlagents_config(name)
     if not demo_steps:
         return config
     demo = work / f"{env}-expert.demo"
@@ -290,7 +289,7 @@ def with_demo(name: str, env: str, demo_steps: int, work: Path) -> Path:
         ):
             if section is not None:
                 section["demo_path"] = str(demo)
-    copy = work / name
+    copy = work / name.replace("/", "_")
     copy.write_text(yaml.safe_dump(data))
     return copy
 

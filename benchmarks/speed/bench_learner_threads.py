@@ -4,8 +4,8 @@ the default of an on-policy run), interleaved, several rounds; reported per run:
 steps per second from the run's ``summary.json``; per round: N threads / one thread.
 
     .venv/bin/python -m benchmarks.speed.bench_learner_threads --rounds 2 \\
-        --case benchmarks/mlagents_configs/ppo_3DBall.yaml unitysim:3DBall 60000 \\
-        --case benchmarks/mlagents_configs/poca_DungeonEscape.yaml unitysim:DungeonEscape 80000
+        --case tests/mlagents_configs/ppo/3DBall.yaml unitysim:3DBall 60000 \\
+        --case tests/mlagents_configs/poca/DungeonEscape.yaml unitysim:DungeonEscape 80000
 """
 
 from __future__ import annotations
