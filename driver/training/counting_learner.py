@@ -33,8 +33,10 @@ class CountingLearner:
         weights_seconds: float = 0.0,
         hold_updates: bool = False,
     ) -> None:
-        """``hold_updates``: each update waits for ``release`` (a Ray actor with
-        ``max_concurrency`` 2 takes the call meanwhile), up to ``HOLD_S``."""
+        """``hold_updates``: each update waits for ``release``, up to ``HOLD_S``. Give
+        ``summary`` and ``release`` a Ray concurrency group of their own, as the real
+        learner's status calls have: with a thread for every call instead, a second
+        submission during the hold would hold a thread too."""
         self.bump_every = bump_every
         self.hold_updates = hold_updates
         self.released = threading.Event()

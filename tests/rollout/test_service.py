@@ -6,6 +6,7 @@ import math
 import os
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import psutil
@@ -26,6 +27,7 @@ from rollout.serving.service import (
 )
 from testkit.synthetic import SyntheticWorker
 from tests.helpers import wait_gone
+from tests.rollout.test_segments import numpy_segment
 from tests.rollout.workers import PORTS, service_config, stop_worker
 from tests.waiting import wait_for
 
@@ -88,29 +90,60 @@ def test_workers_wait_for_new_weights_once_in_flight_steps_cover_the_demand(ray_
     assert sum(acted.values()) / len(acted) <= demand + workers * 12 * horizon, acted
 
 
+def held_learner(
+    ray_session, demand: int
+) -> tuple[ray.actor.ActorHandle, Callable[[str], ray.ObjectRef]]:
+    """A counting learner whose updates wait for ``release``, and a call of its ``summary``
+    or ``release`` on their own concurrency group (submissions stay one at a time)."""
+    learner = ray_session.remote(concurrency_groups={"status": 1})(CountingLearner).remote(
+        demand=demand, hold_updates=True
+    )
+
+    def status(method: str) -> ray.ObjectRef:
+        return getattr(learner, method).options(concurrency_group="status").remote()
+
+    return learner, status
+
+
+def test_a_held_learner_answers_its_status_while_a_second_submission_waits(ray_session):
+    """Two submissions past the demand (a collect that arrives during the update): the
+    second waits for the first, and ``summary`` answers meanwhile (not after the hold's
+    120-s safety stop)."""
+    learner, status = held_learner(ray_session, demand=10)
+    first = learner.submit.remote([numpy_segment(20)])
+    wait_for(lambda: ray_session.get(status("summary"))["updating"], "the update to start")
+    learner.submit.remote([numpy_segment(20)])  # sent before the summary below
+    summary = ray_session.get(status("summary"), timeout=30)
+    assert summary["updating"] and summary["version"] == 0 and summary["submissions"] == 1
+    ray_session.get(status("release"))
+    assert ray_session.get(first, timeout=60) == (1, 10)
+    ray_session.kill(learner)
+
+
 def test_the_driver_gets_control_back_while_the_learner_updates(ray_session, registry):
     """``run(seconds=...)`` returns while the learner's update still runs (the driver reads
     progress and prints summaries meanwhile), instead of blocking on the submission that
     triggered it. The update is held until the test releases it, so "during" is an event:
     a ``run`` that waited for the update would come back only after the hold's safety stop,
-    with the version already moved on."""
-    learner = (
-        ray_session.remote(CountingLearner)
-        .options(max_concurrency=2)  # summary and release are answered during the update
-        .remote(demand=300, hold_updates=True)
-    )
+    with the version already moved on.
+
+    As the real learner (``learners.host.remote``), submissions are taken one at a time and
+    ``summary`` and ``release`` answer from a concurrency group of their own: with two
+    threads for every call, a collect submitted during the hold took the second thread
+    into a hold of its own, and ``summary`` waited for the safety stop."""
+    learner, status = held_learner(ray_session, demand=300)
     config = service_config(UnityConfig("unitysim:3DBall"), registry, horizon=8)
     with RolloutService(config, actor_factory, learner) as service:
         back_during_update = 0  # run() calls that came back while the update was held
         for _ in range(240):  # a safety stop: the first update comes after 300 steps
             service.run(seconds=0.5)
-            summary = ray_session.get(learner.summary.remote())
+            summary = ray_session.get(status("summary"))
             assert summary["version"] == 0, f"run() waited for the learner's update: {summary}"
             back_during_update += summary["updating"]
             if back_during_update == 3:
                 break
         assert back_during_update == 3, summary
-        ray_session.get(learner.release.remote())
+        ray_session.get(status("release"))
         service.run(until=lambda m: service.version >= 1, seconds=120)
         assert service.version == 1
     ray_session.kill(learner)
