@@ -94,7 +94,9 @@ def held_learner(
     ray_session, demand: int
 ) -> tuple[ray.actor.ActorHandle, Callable[[str], ray.ObjectRef]]:
     """A counting learner whose updates wait for ``release``, and a call of its ``summary``
-    or ``release`` on their own concurrency group (submissions stay one at a time)."""
+    or ``release`` on their own concurrency group, as the real learner's status calls
+    (``learners.host.remote``): submissions stay one at a time, so a collect submitted
+    during a held update waits instead of holding the thread ``summary`` needs."""
     learner = ray_session.remote(concurrency_groups={"status": 1})(CountingLearner).remote(
         demand=demand, hold_updates=True
     )
@@ -125,12 +127,8 @@ def test_the_driver_gets_control_back_while_the_learner_updates(ray_session, reg
     progress and prints summaries meanwhile), instead of blocking on the submission that
     triggered it. The update is held until the test releases it, so "during" is an event:
     a ``run`` that waited for the update would come back only after the hold's safety stop,
-    with the version already moved on.
-
-    As the real learner (``learners.host.remote``), submissions are taken one at a time and
-    ``summary`` and ``release`` answer from a concurrency group of their own: with two
-    threads for every call, a collect submitted during the hold took the second thread
-    into a hold of its own, and ``summary`` waited for the safety stop."""
+    with the version already moved on. (``held_learner``: why the learner's status calls
+    have a concurrency group of their own.)"""
     learner, status = held_learner(ray_session, demand=300)
     config = service_config(UnityConfig("unitysim:3DBall"), registry, horizon=8)
     with RolloutService(config, actor_factory, learner) as service:
